@@ -1,0 +1,104 @@
+"""load_mesh / from_arrays: checked topology and clear errors that say what is wrong and where."""
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import real_mesh_path
+
+import vnc_warp as vw
+
+
+def test_texture_seams_are_merged():
+    """spot.obj stores texture seams as split vertices; after merging it is closed with the documented counts."""
+    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    assert (mesh.num_vertices, mesh.num_faces) == (2930, 5856)
+    assert mesh.is_watertight and mesh.volume() > 0
+    assert mesh.vertices.dtype == np.float32 and mesh.faces.dtype == np.int32
+    assert mesh.topology.num_interior == 3 * mesh.num_faces // 2
+
+
+def test_interior_edge_layout_is_consistent():
+    """Each interior edge (a, b, c0, c1) has face (a, b, c0) and face (b, a, c1) in the mesh's winding."""
+    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    faces = {tuple(np.roll(f, -i)) for f in mesh.faces.tolist() for i in range(3)}
+    for a, b, c0, c1 in mesh.topology.interior[::97].tolist():
+        assert (a, b, c0) in faces and (b, a, c1) in faces
+
+
+def test_open_mesh_loads_with_boundary():
+    """A raw scan with holes loads (boundary edges counted, not interior) and is reported as not watertight."""
+    mesh = vw.load_mesh(real_mesh_path("stanford_bunny_open.obj"))
+    assert not mesh.is_watertight
+    assert mesh.topology.boundary.shape[0] > 0
+
+
+def test_empty_mesh():
+    """An empty mesh is refused with 'empty'."""
+    with pytest.raises(vw.MeshError, match="empty"):
+        vw.from_arrays(np.zeros((0, 3)), np.zeros((0, 3), int))
+    with pytest.raises(vw.MeshError, match="empty"):
+        vw.load_mesh(trimesh.Trimesh())
+
+
+def test_nan_coordinates_are_located():
+    """NaN coordinates are refused with their count and vertex indices."""
+    tm = trimesh.creation.icosphere(1)
+    v = tm.vertices.copy()
+    v[[4, 9]] = np.nan
+    with pytest.raises(vw.MeshError, match=r"2 vertex .*NaN.*4, 9"):
+        vw.from_arrays(v, tm.faces)
+
+
+def test_non_manifold_edge_is_counted():
+    """Three faces on one edge: refused, naming the count and the vertex pair."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    f = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    with pytest.raises(vw.MeshError, match=r"non-manifold: 1 edge.*at \[0\., 0\., 0\.\] - \[1\., 0\., 0\.\]"):
+        vw.from_arrays(v, f)
+
+
+def test_inconsistent_winding_is_counted():
+    """One face flipped inside a closed mesh: refused with the number of inconsistent edges."""
+    tm = trimesh.creation.icosphere(1)
+    f = tm.faces.copy()
+    f[0] = f[0][::-1]
+    with pytest.raises(vw.MeshError, match=r"inconsistent winding: 3 interior edge"):
+        vw.from_arrays(tm.vertices, f)
+
+
+def test_degenerate_faces_are_located():
+    """Faces repeating an index or with zero area are refused with their indices."""
+    tm = trimesh.creation.icosphere(1)
+    f = tm.faces.copy()
+    f[5] = [f[5][0], f[5][0], f[5][1]]
+    with pytest.raises(vw.MeshError, match=r"degenerate.*repeat.*faces 5"):
+        vw.from_arrays(tm.vertices, f)
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], float)
+    with pytest.raises(vw.MeshError, match=r"zero area.*faces 0"):
+        vw.from_arrays(v, np.array([[0, 1, 2], [0, 1, 3]]))
+
+
+def test_index_out_of_range_and_bad_shapes():
+    """Indices outside the vertex range and non-triangle faces are refused."""
+    v = np.eye(3)
+    with pytest.raises(vw.MeshError, match="outside"):
+        vw.from_arrays(v, np.array([[0, 1, 3]]))
+    with pytest.raises(vw.MeshError, match=r"\(F, 3\)"):
+        vw.from_arrays(v, np.array([[0, 1, 2, 0]]))
+
+
+def test_missing_file_and_unreadable_file(tmp_path):
+    """A missing path raises FileNotFoundError; a garbage file raises MeshError naming the file."""
+    with pytest.raises(FileNotFoundError):
+        vw.load_mesh(tmp_path / "nope.obj")
+    p = tmp_path / "junk.ply"
+    p.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nend_header\n\x00")
+    with pytest.raises((vw.MeshError, FileNotFoundError), match="junk.ply"):
+        vw.load_mesh(p)
+
+
+def test_no_interior_edges():
+    """A single triangle has no interior edge: VNC refuses it with a clear message."""
+    mesh = vw.from_arrays(np.eye(3), np.array([[0, 1, 2]]))
+    with pytest.raises(vw.MeshError, match="no interior edges"):
+        vw.vnc_soft(mesh, 1.0, device="cpu")

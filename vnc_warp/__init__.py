@@ -1,0 +1,8 @@
+"""vnc-warp: the VNC operator, VNC-Flow and the C-VAE of "VNC: A Scale-Space Foundation for Learnable
+3D Surface Evolution", on NVIDIA Warp kernels with PyTorch interop."""
+
+from .mesh import EdgeTopology, Mesh, MeshError, from_arrays, load_mesh
+
+__version__ = "0.1.0"
+from .operators import edge_fields, integrated_mean_curvature, vnc_hard, vnc_soft
+from .scale import ScaleCurve, adaptive_scale, default_scales, scale_curve, vnc_auc
