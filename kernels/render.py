@@ -125,7 +125,7 @@ def render_pixels(
                 direction = wp.normalize(forward + (x * half_x) * right + (y * half_y) * up)
             q = wp.mesh_query_ray(mesh, origin, direction, max_t)
             if q.result:
-                nearest = wp.min(nearest, q.t)
+                nearest = wp.min(nearest, q.t * wp.dot(direction, forward))
                 geo = wp.normalize(q.normal)
                 facing = 1.0
                 if wp.dot(geo, direction) > 0.0:

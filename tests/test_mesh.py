@@ -102,3 +102,17 @@ def test_no_interior_edges():
     mesh = vw.from_arrays(np.eye(3), np.array([[0, 1, 2]]))
     with pytest.raises(vw.MeshError, match="no interior edges"):
         vw.vnc_soft(mesh, 1.0, device="cpu")
+
+
+def test_merging_keeps_vertex_order():
+    """A mesh without duplicate vertices keeps its vertex order (per-vertex results map back to the file);
+    duplicates are merged into their first occurrence."""
+    tm = trimesh.creation.icosphere(2)
+    perm = np.random.default_rng(0).permutation(len(tm.vertices))
+    v, f = tm.vertices[perm], np.argsort(perm)[tm.faces]
+    mesh = vw.from_arrays(v, f)
+    np.testing.assert_array_equal(mesh.vertices, v.astype(np.float32))
+    dup = np.concatenate([v, v[:1]])
+    f2 = f.copy()
+    f2[f2 == 0] = len(v)
+    np.testing.assert_array_equal(vw.from_arrays(dup, f2).vertices, v.astype(np.float32))

@@ -9,7 +9,9 @@ import math
 
 import numpy as np
 import pytest
+import torch
 import trimesh
+import warp as wp
 from PIL import Image
 
 from vnc_warp import from_arrays
@@ -63,6 +65,22 @@ def test_camera_basis_follows_its_convention():
     np.testing.assert_allclose(up_z, [0.0, 0.0, 1.0], atol=1e-12)
 
 
+@pytest.mark.parametrize("up", ["x", "y", "z"])
+def test_camera_azimuth_turns_right_handed_about_up(up):
+    """For every up axis, +90 degrees of azimuth turns the eye by the right-hand rule about that axis
+    (eye(90) = up x eye(0)), elevation lifts it along up, and the screen frame is right-handed."""
+    axis = np.eye(3)["xyz".index(up)]
+
+    def eye(az, el):
+        return Camera(azimuth=az, elevation=el, distance=1.0, target=(0, 0, 0), up=up).basis()[0]
+
+    np.testing.assert_allclose(eye(90.0, 0.0), np.cross(axis, eye(0.0, 0.0)), atol=1e-12)
+    assert eye(0.0, 30.0) @ axis == pytest.approx(0.5)
+    _, fwd, right, screen_up = Camera(azimuth=20.0, elevation=10.0, distance=1.0, target=(0, 0, 0), up=up).basis()
+    assert np.linalg.det(np.stack([right, screen_up, -fwd])) == pytest.approx(1.0)
+    assert screen_up @ axis > 0.9
+
+
 def test_camera_rejects_bad_parameters():
     """Invalid angles, fov, distance, target and up axis raise ValueError with the field's name."""
     for kwargs, word in [({"elevation": 90.0}, "elevation"), ({"fov": 0.0}, "fov"), ({"distance": -1.0}, "distance"),
@@ -76,17 +94,41 @@ def test_camera_rejects_bad_parameters():
 
 
 def test_camera_fit_frames_bounding_sphere_and_unions():
-    """fit puts the target at the box centre and the box's bounding sphere exactly at the view edge
-    (times the margin); a list of meshes is framed by the union of their boxes."""
+    """fit(tight=False) puts the target at the box centre and the box's bounding sphere exactly at the
+    view edge (times the margin); a list of meshes is framed by the union of their boxes."""
     a, b = _sphere(1.0, centre=np.zeros(3)), _sphere(2.0, centre=np.array([3.0, 0.0, 0.0]))
-    cam = Camera.fit([a, b], fov=40.0, margin=1.0)
+    cam = Camera.fit([a, b], fov=40.0, margin=1.0, tight=False)
     lo = np.minimum(a.vertices.min(0), b.vertices.min(0)).astype(np.float64)
     hi = np.maximum(a.vertices.max(0), b.vertices.max(0)).astype(np.float64)
     np.testing.assert_allclose(cam.target, (lo + hi) / 2, atol=1e-6)
     radius = np.linalg.norm(hi - lo) / 2
     assert math.degrees(math.asin(radius / cam.distance)) == pytest.approx(20.0, rel=1e-9)
-    same = Camera.fit(np.stack([lo, hi]), fov=40.0, margin=1.0)
+    same = Camera.fit(np.stack([lo, hi]), fov=40.0, margin=1.0, tight=False)
     assert same.distance == pytest.approx(cam.distance) and np.allclose(same.target, cam.target)
+
+
+@pytest.mark.parametrize("orthographic", [False, True])
+def test_camera_fit_tight_projects_box_corners_inside(orthographic):
+    """fit(tight=True) keeps all eight box corners in front of the eye and inside the view (NDC within
+    1 / margin on both axes of a square image) with at least one corner on that border, and is closer
+    than the bounding-sphere framing."""
+    lo, hi = np.array([-0.9, 0.0, -0.1]), np.array([0.9, 1.8, 0.2])  # a T-posed human's box
+    margin, fov = 1.1, 35.0
+    cam = Camera.fit(np.stack([lo, hi]), fov=fov, margin=margin, azimuth=-40.0, elevation=25.0,
+                     orthographic=orthographic)
+    eye, fwd, right, up = cam.basis()
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    rel = corners - eye
+    depth = rel @ fwd
+    assert np.all(depth > 0.0)
+    half = math.tan(math.radians(fov) / 2)
+    if orthographic:
+        ndc = np.abs(np.stack([rel @ right, rel @ up], axis=1)) / (cam.distance * half)
+    else:
+        ndc = np.abs(np.stack([rel @ right, rel @ up], axis=1)) / (depth[:, None] * half)
+    assert ndc.max() == pytest.approx(1.0 / margin, rel=1e-9)
+    loose = Camera.fit(np.stack([lo, hi]), fov=fov, margin=margin, azimuth=-40.0, elevation=25.0, tight=False)
+    assert cam.distance < loose.distance
 
 
 @pytest.mark.parametrize("radius", [0.15, 500.0])
@@ -180,8 +222,8 @@ def test_red_square_centre_and_background(device):
 
 def test_scalars_use_colormap_per_pixel_and_nan_faces_grey(device):
     """A scalar equal to x on the square, drawn in 'gray' with limits [-2, 2], gives every pixel the
-    grey level 0.25 + x/4 shaded as above (the scalar is interpolated, then looked up); a NaN vertex
-    turns the faces around it grey (albedo 0.5)."""
+    grey level 0.5 + x/4 shaded as above (the scalar is interpolated, then looked up), also when the
+    scalars come as a torch tensor or a Warp array; a NaN vertex turns the faces around it grey (albedo 0.5)."""
     v, f, _ = _square()
     size, scale = 81, math.tan(math.radians(50.0) / 2) * 3.0
     cam = Camera(azimuth=0.0, elevation=0.0, fov=50.0, distance=3.0, target=(0, 0, 0), orthographic=True)
@@ -193,6 +235,9 @@ def test_scalars_use_colormap_per_pixel_and_nan_faces_grey(device):
     expected = np.clip(np.rint((grey * 0.95 + 0.15) * 255), 0, 255)
     assert np.abs(img[covered][:, 0].astype(int) - expected[covered]).max() <= 2
     assert np.all(img[covered][:, 0] == img[covered][:, 2])
+    for other in (torch.as_tensor(v[:, 0]), wp.array(v[:, 0].astype(np.float32), device=device)):
+        same = render_mesh((v, f), scalars=other, cmap="gray", vmin=-2.0, vmax=2.0, **kw)
+        np.testing.assert_array_equal(same, img)
     s = v[:, 0].copy()
     s[0] = np.nan  # vertex 0 is on both faces
     img_nan = render_mesh((v, f), scalars=s, cmap="viridis", **kw)
@@ -320,25 +365,29 @@ def test_save_png_roundtrip(tmp_path, device):
 
 
 def test_montage_size_and_placement():
-    """Grid size is cols * cell + (cols + 1) * pad wide and rows * (cell + label) + (rows + 1) * pad
-    high; frames land at their cells, smaller ones centred; labels draw dark pixels under frames."""
+    """The grid is sum(column widths) + (cols + 1) * pad wide and sum(row heights) + rows * label + (rows + 1)
+    * pad high, columns and rows sized by their largest frame; frames land in their cells, smaller ones
+    centred; labels draw dark pixels under frames; cols=1 stacks frames of different widths."""
     a = np.full((30, 40, 3), (255, 0, 0), np.uint8)
     b = np.full((20, 50, 3), (0, 0, 255), np.uint8)
-    c = np.zeros((30, 40), np.float64)
+    c = np.zeros((36, 30), np.float64)
     out = montage([a, b, c], cols=2, pad=5, label_height=12, labels=["a", "b", "c"])
-    assert out.shape == (2 * (30 + 12) + 3 * 5, 2 * 50 + 3 * 5, 3)
-    np.testing.assert_array_equal(out[5 + 15, 5 + 25], (255, 0, 0))      # a centred in cell (0, 0)
-    np.testing.assert_array_equal(out[5 + 15, 5 + 50 + 5 + 25], (0, 0, 255))
-    col_b = 5 + 50 + 5 + 25  # b is 20 high in a 30-high cell: rows 5..24 of the cell
+    # columns: max(40, 30) = 40 and 50; rows: max(30, 20) = 30 and 36
+    assert out.shape == ((30 + 36) + 2 * 12 + 3 * 5, (40 + 50) + 3 * 5, 3)
+    np.testing.assert_array_equal(out[5 + 15, 5 + 20], (255, 0, 0))
+    col_b = 5 + 40 + 5 + 25  # b is 20 high in a 30-high row: rows 5..24 of the cell
     np.testing.assert_array_equal(out[5 + 4, col_b], (255, 255, 255))
     np.testing.assert_array_equal(out[5 + 5, col_b], (0, 0, 255))
     np.testing.assert_array_equal(out[5 + 24, col_b], (0, 0, 255))
     np.testing.assert_array_equal(out[5 + 25, col_b], (255, 255, 255))
-    np.testing.assert_array_equal(out[5 + 42 + 5 + 15, 5 + 25], (0, 0, 0))
-    label_band = out[5 + 30:5 + 42, 5:5 + 50]
+    row_c = 5 + 30 + 12 + 5  # c (30 wide) centred in the 40-wide first column: columns 5..34 of the cell
+    np.testing.assert_array_equal(out[row_c, 5 + 4], (255, 255, 255))
+    np.testing.assert_array_equal(out[row_c, 5 + 5], (0, 0, 0))
+    np.testing.assert_array_equal(out[row_c + 35, 5 + 34], (0, 0, 0))
+    label_band = out[5 + 30:5 + 42, 5:5 + 40]
     assert label_band.min() < 128
-    plain = montage([a, b, c], pad=0)
-    assert plain.shape == (30, 150, 3)
+    assert montage([a, b, c], pad=0).shape == (36, 120, 3)
+    assert montage([a, b], cols=1, pad=0).shape == (50, 50, 3)
     with pytest.raises(ValueError, match="labels"):
         montage([a, b], labels=["x"])
 

@@ -9,7 +9,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["curvature"]
+COMMANDS = ["curvature", "dataset", "evaluate", "train", "generate", "flow", "flow-batch"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -193,9 +193,13 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
         raise MeshError(f"{name}: {out.size} face(s) index vertices outside [0, {v.shape[0]}), e.g. faces {_first(out)}")
     f = f.astype(np.int64)
     if merge:
-        uniq, inv = np.unique(v, axis=0, return_inverse=True)
-        f = inv.reshape(-1)[f]
-        v = uniq
+        # keep the first occurrence's order, so a mesh without duplicates keeps its vertex order
+        uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        f = rank[inv.reshape(-1)][f]
+        v = uniq[order]
     used = np.unique(f)
     if used.size < v.shape[0]:
         remap = np.full(v.shape[0], -1, dtype=np.int64)

@@ -66,6 +66,17 @@ COLORMAPS = {"coolwarm": _COOLWARM, "viridis": _VIRIDIS, "magma": _MAGMA, "gray"
 _NAN_RGB = (0.5, 0.5, 0.5)
 _DEFAULT_ALBEDO = (0.78, 0.78, 0.80)
 _LUT_SIZE = 256
+# shading: albedo * (AMBIENT + DIFFUSE max(n.l, 0)) + SPECULAR max(n.h, 0)^SHININESS
+_AMBIENT, _DIFFUSE, _SPECULAR, _SHININESS = 0.25, 0.7, 0.15, 32.0
+
+
+def _host(x: Any) -> Any:
+    """NumPy view or copy of a Warp array or a torch tensor (on any device); anything else unchanged."""
+    if isinstance(x, wp.array):
+        return x.numpy()
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        return x.detach().cpu().numpy()
+    return x
 
 
 def _cmap_table(cmap: str) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +122,7 @@ def colormap(values: Any, cmap: str = "coolwarm", vmin: float | None = None, vma
         ValueError: unknown ``cmap`` or ``vmax < vmin``.
     """
     pos, rgb = _cmap_table(cmap)
-    v = np.asarray(values, dtype=np.float64)
+    v = np.asarray(_host(values), dtype=np.float64)
     t = _normalize(v, vmin, vmax)
     out = np.empty(v.shape + (3,), np.float32)
     nan = np.isnan(t)
@@ -122,7 +133,7 @@ def colormap(values: Any, cmap: str = "coolwarm", vmin: float | None = None, vma
     return out
 
 
-_UP_AXES = {"x": 0, "y": 1, "z": 2}
+_UP_AXES = ("x", "y", "z")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,15 +180,17 @@ class Camera:
             object.__setattr__(self, "target", tuple(float(c) for c in t))
 
     @classmethod
-    def fit(cls, mesh_or_bounds: Any, *, margin: float = 1.05, **camera_args) -> "Camera":
-        """A camera whose view holds the bounding sphere of one or several meshes.
+    def fit(cls, mesh_or_bounds: Any, *, margin: float = 1.05, tight: bool = True, **camera_args) -> "Camera":
+        """A camera aimed at the centre of the bounding box of one or several meshes, framing all of it.
 
         Use one fitted camera for every frame of a filmstrip so that all share scale and framing.
 
         Args:
             mesh_or_bounds: a :class:`Mesh`, a ``(vertices, faces)`` pair, an (N, 3) point array, a
                 (2, 3) ``[min, max]`` box, or a list of these (their union is framed).
-            margin: radius factor, >= 1 leaves a border around the sphere.
+            margin: size factor, > 1 leaves a border.
+            tight: frame the eight box corners as seen from this view (fills more of the picture);
+                ``False`` frames the box's bounding sphere, the same distance from every direction.
             **camera_args: the other :class:`Camera` fields (``azimuth``, ``elevation``, ``fov``, ``up``,
                 ``orthographic``).
 
@@ -192,7 +205,22 @@ class Camera:
         center = 0.5 * (lo + hi)
         radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-12)
         base = cls(**camera_args)
-        distance = radius * margin / math.sin(math.radians(base.fov) / 2.0)
+        half = math.radians(base.fov) / 2.0
+        if not tight:
+            distance = radius * margin / math.sin(half)
+        else:
+            _, forward, right, up = dataclasses.replace(base, distance=1.0, target=tuple(center)).basis()
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            rel = corners - center
+            extent = margin * np.maximum(np.abs(rel @ right), np.abs(rel @ up))
+            toward_eye = -(rel @ forward)
+            if base.orthographic:
+                # the view size follows the distance; the eye must also stay outside the box
+                distance = max(float(extent.max()) / math.tan(half), 1.01 * float(toward_eye.max()))
+            else:
+                # a corner at height e and depth z towards the eye fits when e / (d - z) <= tan(half)
+                distance = float(np.max(toward_eye + extent / math.tan(half)))
+            distance = max(distance, 1e-12)
         return dataclasses.replace(base, distance=distance, target=tuple(center))
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -204,14 +232,15 @@ class Camera:
         if self.distance is None or self.target is None:
             raise ValueError("Camera.basis: distance and target must be set (see Camera.fit)")
         az, el = math.radians(self.azimuth), math.radians(self.elevation)
-        # components (horizontal-front, vertical, horizontal-side) mapped onto world axes per up axis
+        # the eye direction in (side, vertical, front) components, rotated onto the world axes of each
+        # up axis by a proper rotation (so no choice of up mirrors the picture)
         side, vert, front = math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)
         if self.up == "y":
             offset, world_up = np.array([side, vert, front]), np.array([0.0, 1.0, 0.0])
         elif self.up == "z":
             offset, world_up = np.array([side, -front, vert]), np.array([0.0, 0.0, 1.0])
         else:
-            offset, world_up = np.array([vert, side, front]), np.array([1.0, 0.0, 0.0])
+            offset, world_up = np.array([vert, -side, front]), np.array([1.0, 0.0, 0.0])
         eye = np.asarray(self.target) + float(self.distance) * offset
         forward = -offset / np.linalg.norm(offset)
         right = np.cross(forward, world_up)
@@ -251,8 +280,8 @@ def _mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(mesh, Mesh):
         return mesh.vertices, mesh.faces
     if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        v = np.asarray(mesh[0], dtype=np.float32)
-        f = np.asarray(mesh[1])
+        v = np.asarray(_host(mesh[0]), dtype=np.float32)
+        f = np.asarray(_host(mesh[1]))
         if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
             raise ValueError(f"render_mesh: vertices must be (V, 3), got shape {v.shape}")
         if not np.all(np.isfinite(v)):
@@ -269,16 +298,15 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (V, 3) float32; zero for vertices on no face."""
     v64 = v.astype(np.float64)
     fn = np.cross(v64[f[:, 1]] - v64[f[:, 0]], v64[f[:, 2]] - v64[f[:, 0]])
-    n = np.zeros_like(v64)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
+    corner = f.reshape(-1)
+    n = np.stack([np.bincount(corner, weights=np.repeat(fn[:, c], 3), minlength=v.shape[0]) for c in range(3)], 1)
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return (n / np.where(length > 0.0, length, 1.0)).astype(np.float32)
 
 
 def _vertex_colors(colors: Any, num_vertices: int) -> np.ndarray:
     """(V, 3) float32 in [0, 1] from (V, 3) floats, (V, 3|4) uint8 or a single (3,) colour."""
-    c = np.asarray(colors)
+    c = np.asarray(_host(colors))
     if c.shape in ((3,), (4,)):
         c = np.broadcast_to(c[:3], (num_vertices, 3))
     if c.ndim != 2 or c.shape[0] != num_vertices or c.shape[1] not in (3, 4):
@@ -321,6 +349,7 @@ def render_mesh(
     Args:
         mesh: a :class:`Mesh` or a ``(vertices (V, 3), faces (F, 3) int)`` pair.
         colors: (V, 3) float in [0, 1] or (V, 3|4) uint8 per-vertex colours, or one RGB colour.
+            Arrays may also be Warp arrays or torch tensors on any device.
         scalars: (V,) per-vertex field drawn through :func:`colormap` (``cmap``, ``vmin``, ``vmax``);
             NaN marks missing values, whose faces are grey. Exclusive with ``colors``.
         cmap, vmin, vmax: colour map and its limits for ``scalars`` (limits default to the finite range).
@@ -361,7 +390,7 @@ def render_mesh(
     values = np.zeros(0, np.float32)
     rgb = np.zeros((0, 3), np.float32)
     if scalars is not None:
-        s = np.asarray(scalars, dtype=np.float64).reshape(-1)
+        s = np.asarray(_host(scalars), dtype=np.float64).reshape(-1)
         if s.shape[0] != v.shape[0]:
             raise ValueError(f"render_mesh: scalars must be (V,) with V={v.shape[0]}, got {np.shape(scalars)}")
         t = _normalize(s, vmin, vmax)
@@ -411,7 +440,7 @@ def render_mesh(
                 wp.vec3(*_NAN_RGB),
                 wp.vec3(*eye), wp.vec3(*forward), wp.vec3(*right), wp.vec3(*up),
                 float(half_x), float(half_y), int(bool(cam.orthographic)), samples, float(max_t),
-                wp.vec3(*l_world), wp.vec3(*bg), 0.25, 0.7, 0.15, 32.0, int(bool(flat)),
+                wp.vec3(*l_world), wp.vec3(*bg), _AMBIENT, _DIFFUSE, _SPECULAR, _SHININESS, int(bool(flat)),
             ],
             outputs=[color, depth],
         )
@@ -474,16 +503,18 @@ def montage(
 ) -> np.ndarray:
     """Tile frames on a grid, row by row, with optional labels under each frame.
 
-    Every cell is as large as the largest frame; smaller frames are centred in theirs. The result is
-    ``cols * cell_w + (cols + 1) * pad`` wide and ``rows * (cell_h + label_height) + (rows + 1) * pad``
-    high, with ``rows = ceil(len(images) / cols)``.
+    Column ``c`` is as wide as its widest frame and row ``r`` as high as its highest; smaller frames
+    are centred in their cells. The result is ``sum(col_widths) + (cols + 1) * pad`` wide and
+    ``sum(row_heights) + rows * label_height + (rows + 1) * pad`` high, ``rows = ceil(len(images) / cols)``.
+    Frames of one size therefore tile evenly, and ``montage([grid, colorbar(...)], cols=1, pad=0)``
+    stacks a colour bar under a grid without a gap.
 
     Args:
         images: frames, (H, W, 3|4) or (H, W) uint8, or floats in [0, 1].
         labels: one string per frame, centred under it in Pillow's default font.
         cols: frames per row; default all in one row (a filmstrip).
         pad: border and gap in pixels.
-        label_height: pixels reserved under each frame for its label; default 28 with labels, 0 without.
+        label_height: pixels reserved under each row for labels; default 28 with labels, 0 without.
         background: RGB uint8 fill.
 
     Returns:
@@ -504,15 +535,16 @@ def montage(
         raise ValueError(f"montage: need cols >= 1 and pad >= 0, got cols={cols}, pad={pad}")
     lh = (28 if labels is not None else 0) if label_height is None else int(label_height)
     rows = -(-len(frames) // cols)
-    cw = max(fr.shape[1] for fr in frames)
-    ch = max(fr.shape[0] for fr in frames)
-    canvas = Image.new("RGB", (cols * cw + (cols + 1) * pad, rows * (ch + lh) + (rows + 1) * pad), tuple(background))
+    col_w = [max(fr.shape[1] for fr in frames[c::cols]) for c in range(min(cols, len(frames)))]
+    row_h = [max(fr.shape[0] for fr in frames[r * cols:(r + 1) * cols]) for r in range(rows)]
+    x_at = np.cumsum([pad] + [w + pad for w in col_w])
+    y_at = np.cumsum([pad] + [h + lh + pad for h in row_h])
+    canvas = Image.new("RGB", (int(x_at[-1]), int(y_at[-1])), tuple(background))
     draw = ImageDraw.Draw(canvas)
     font = _font(max(lh * 0.6, 8))
     for k, fr in enumerate(frames):
         r, c = divmod(k, cols)
-        x0 = pad + c * (cw + pad)
-        y0 = pad + r * (ch + lh + pad)
+        x0, y0, cw, ch = int(x_at[c]), int(y_at[r]), col_w[c], row_h[r]
         canvas.paste(Image.fromarray(fr), (x0 + (cw - fr.shape[1]) // 2, y0 + (ch - fr.shape[0]) // 2))
         if labels is not None and lh > 0 and labels[k]:
             tw, th = _text_size(draw, str(labels[k]), font)

@@ -12,7 +12,7 @@ from vnc_warp.kernels import vnc as _k
 
 from ._device import get_device
 from .mesh import Mesh
-from .operators import _midpoint_bvh, _segment_bvh, edge_fields
+from .operators import _midpoint_bvh, _positions, _segment_bvh, edge_fields
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -65,7 +65,8 @@ def _check_taus(taus) -> np.ndarray:
     return t
 
 
-def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None) -> ScaleCurve:
+def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None,
+                positions: wp.array | None = None) -> ScaleCurve:
     """VNC-Scale curves ``C(v_k) = H(v_k, tau)`` at every scale, in one neighbour traversal.
 
     Args:
@@ -73,19 +74,20 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
         taus: (S,) ascending scales (mesh units); default :func:`default_scales`.
         variant: "soft" (Eq. 3, ``sigma = tau / kappa``) or "hard" (Eq. 2, radius ``tau``).
         kappa: cut-off ratio (``None`` allowed for "hard": unweighted).
-        device: Warp device.
+        device: Warp device (defaults to ``positions.device`` when positions are given).
+        positions: (V,) vec3 ``wp.array`` overriding ``mesh.vertices`` (e.g. a flow iterate on the GPU).
 
     Returns:
         A :class:`ScaleCurve` with ``H`` of shape (S, V) and the global mean curve.
     """
-    device = get_device(device)
+    device = positions.device if positions is not None else get_device(device)
     t = _check_taus(default_scales(mesh) if taus is None else taus)
     if variant not in ("soft", "hard"):
         raise ValueError(f"variant must be 'soft' or 'hard', got {variant!r}")
     if variant == "soft" and not (kappa is not None and kappa > 0):
         raise ValueError(f"VNC-soft needs a positive kappa, got {kappa}")
     S, V = t.size, mesh.num_vertices
-    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    x = _positions(mesh, positions, device)
     f = edge_fields(mesh, positions=x, device=device)
     taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
     num = wp.zeros((S, V), dtype=wp.float32, device=device)

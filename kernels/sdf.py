@@ -1,0 +1,186 @@
+"""Warp kernels for signed distances to a triangle mesh (paper Sec. 3.2, SDF-remesh of Algorithm 1).
+
+Conventions shared by every kernel here:
+
+* ``use_winding`` is 1 for the sign from the fast winding number (robust for open meshes such as raw
+  scans; the ``wp.Mesh`` must be built with ``support_winding_number=True``) and 0 for the sign from
+  the closest face's normal (faster, watertight meshes only).
+* Distances are clamped to ``max_dist`` but the sign is always exact: a point with no face closer
+  than ``max_dist`` is classified by a second, unbounded query.
+* A grid node ``(i, j, k)`` sits at ``origin + spacing * (i, j, k)``.
+"""
+
+import warp as wp
+
+
+@wp.func
+def signed_distance_winding(mesh_id: wp.uint64, p: wp.vec3, max_dist: float) -> float:
+    """Signed distance, sign from the winding number, clamped to ``[-max_dist, max_dist]``."""
+    q = wp.mesh_query_point_sign_winding_number(mesh_id, p, max_dist)
+    if q.result:
+        return q.sign * wp.length(p - wp.mesh_eval_position(mesh_id, q.face, q.u, q.v))
+    # no face within max_dist: the bounded query returned no sign, so classify with an unbounded one
+    s = wp.mesh_query_point_sign_winding_number(mesh_id, p, 1.0e18)
+    if s.result:
+        return s.sign * max_dist
+    return max_dist
+
+
+@wp.func
+def signed_distance_normal(mesh_id: wp.uint64, p: wp.vec3, max_dist: float) -> float:
+    """Signed distance, sign from the closest face's normal, clamped to ``[-max_dist, max_dist]``."""
+    q = wp.mesh_query_point_sign_normal(mesh_id, p, max_dist)
+    if q.result:
+        return q.sign * wp.length(p - wp.mesh_eval_position(mesh_id, q.face, q.u, q.v))
+    s = wp.mesh_query_point_sign_normal(mesh_id, p, 1.0e18)
+    if s.result:
+        return s.sign * max_dist
+    return max_dist
+
+
+@wp.func
+def query_signed_distance(mesh_id: wp.uint64, p: wp.vec3, max_dist: float, use_winding: int) -> float:
+    """Signed distance from ``p`` to the mesh, negative inside, clamped to ``[-max_dist, max_dist]``."""
+    if use_winding != 0:
+        return signed_distance_winding(mesh_id, p, max_dist)
+    return signed_distance_normal(mesh_id, p, max_dist)
+
+
+@wp.kernel(enable_backward=False)
+def signed_distance_points(
+    mesh_id: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    use_winding: int,
+    out: wp.array(dtype=float),
+):
+    """Per query point: the signed distance to the mesh."""
+    i = wp.tid()
+    out[i] = query_signed_distance(mesh_id, points[i], max_dist, use_winding)
+
+
+@wp.kernel(enable_backward=False)
+def signed_distance_grid(
+    mesh_id: wp.uint64,
+    origin: wp.vec3,
+    spacing: float,
+    max_dist: float,
+    use_winding: int,
+    out: wp.array3d(dtype=float),
+):
+    """Per grid node: the signed distance to the mesh."""
+    i, j, k = wp.tid()
+    p = origin + spacing * wp.vec3(float(i), float(j), float(k))
+    out[i, j, k] = query_signed_distance(mesh_id, p, max_dist, use_winding)
+
+
+@wp.kernel(enable_backward=False)
+def mark_band_cells(coarse: wp.array3d(dtype=float), band: float, active: wp.array3d(dtype=wp.int32)):
+    """Per coarse cell: 1 when the surface may cross it, else 0.
+
+    A cell may hold a surface point only if some corner lies within ``band`` (at least half the cell
+    diagonal) of the surface; a sign change between corners without a close corner also marks it,
+    since the winding-number sign of an open mesh flips across its holes away from any face.
+    """
+    i, j, k = wp.tid()
+    d0 = coarse[i, j, k]
+    near = 0
+    flip = 0
+    for c in range(8):
+        d = coarse[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
+        if wp.abs(d) <= band:
+            near = 1
+        if (d < 0.0 and d0 >= 0.0) or (d >= 0.0 and d0 < 0.0):
+            flip = 1
+    active[i, j, k] = wp.max(near, flip)
+
+
+@wp.func
+def cell_range(i: int, factor: int, num_cells: int) -> wp.vec2i:
+    """First and last coarse cell (inclusive) along one axis that contain fine node ``i``."""
+    hi = wp.min(i // factor, num_cells - 1)
+    lo = hi
+    if i % factor == 0 and i > 0:
+        lo = i // factor - 1
+    return wp.vec2i(lo, hi)
+
+
+@wp.kernel(enable_backward=False)
+def refine_band_grid(
+    mesh_id: wp.uint64,
+    coarse: wp.array3d(dtype=float),
+    active: wp.array3d(dtype=wp.int32),
+    factor: int,
+    origin: wp.vec3,
+    spacing: float,
+    max_dist: float,
+    use_winding: int,
+    out: wp.array3d(dtype=float),
+):
+    """Per fine node: the exact signed distance if a band cell contains the node, else the trilinear
+    interpolation of the coarse grid (same sign, no zero crossing: enough for marching cubes).
+
+    The coarse grid has spacing ``factor * spacing`` and shares ``origin``.
+    """
+    i, j, k = wp.tid()
+    if i % factor == 0 and j % factor == 0 and k % factor == 0:
+        out[i, j, k] = coarse[i // factor, j // factor, k // factor]
+        return
+    ri = cell_range(i, factor, active.shape[0])
+    rj = cell_range(j, factor, active.shape[1])
+    rk = cell_range(k, factor, active.shape[2])
+    in_band = int(0)
+    for ci in range(ri[0], ri[1] + 1):
+        for cj in range(rj[0], rj[1] + 1):
+            for ck in range(rk[0], rk[1] + 1):
+                in_band = wp.max(in_band, active[ci, cj, ck])
+    if in_band != 0:
+        p = origin + spacing * wp.vec3(float(i), float(j), float(k))
+        out[i, j, k] = query_signed_distance(mesh_id, p, max_dist, use_winding)
+        return
+    ci = ri[1]
+    cj = rj[1]
+    ck = rk[1]
+    inv = 1.0 / float(factor)
+    tx = float(i - ci * factor) * inv
+    ty = float(j - cj * factor) * inv
+    tz = float(k - ck * factor) * inv
+    c00 = wp.lerp(coarse[ci, cj, ck], coarse[ci + 1, cj, ck], tx)
+    c10 = wp.lerp(coarse[ci, cj + 1, ck], coarse[ci + 1, cj + 1, ck], tx)
+    c01 = wp.lerp(coarse[ci, cj, ck + 1], coarse[ci + 1, cj, ck + 1], tx)
+    c11 = wp.lerp(coarse[ci, cj + 1, ck + 1], coarse[ci + 1, cj + 1, ck + 1], tx)
+    out[i, j, k] = wp.lerp(wp.lerp(c00, c10, ty), wp.lerp(c01, c11, ty), tz)
+
+
+@wp.kernel(enable_backward=False)
+def inward_thickness(
+    mesh_id: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    offset: float,
+    max_t: float,
+    out: wp.array(dtype=float),
+):
+    """Per surface sample: distance along the inward normal ``-n`` to the next surface hit, or -1.
+
+    The ray starts ``offset`` inside so it does not hit its own face.
+    """
+    i = wp.tid()
+    n = normals[i]
+    q = wp.mesh_query_ray(mesh_id, points[i] - offset * n, -n, max_t)
+    out[i] = -1.0
+    if q.result:
+        out[i] = q.t + offset
+
+
+@wp.kernel(enable_backward=False)
+def push_off_zero(grid: wp.array3d(dtype=float), min_abs: float):
+    """Per grid node: move values within ``min_abs`` of zero to ``+-min_abs`` (zero counts as outside).
+
+    Marching cubes puts a vertex where an edge's values cross zero; a value near zero puts it on the
+    node itself, and the triangles around that node collapse to slivers.
+    """
+    i, j, k = wp.tid()
+    d = grid[i, j, k]
+    if wp.abs(d) < min_abs:
+        grid[i, j, k] = wp.where(d < 0.0, -min_abs, min_abs)

@@ -1,0 +1,160 @@
+"""SDF-remesh (vnc_warp.remesh) on real meshes, and validate_surface on broken ones.
+
+Topology and geometry are checked with trimesh (watertightness, winding, Euler number, volume,
+closest-point distances), independently of the package's own checks.
+"""
+
+import fast_simplification
+import numpy as np
+import pytest
+import trimesh
+from conftest import real_mesh_path
+
+from vnc_warp.mesh import Mesh, MeshError, load_mesh
+from vnc_warp.remesh import sdf_remesh, validate_surface
+
+
+def _check_remeshed(out: Mesh, src: Mesh, target: int, *, closeness: float = 0.15):
+    """Face count, area, topology, orientation and closeness of a remeshed surface, via trimesh."""
+    assert isinstance(out, Mesh)
+    assert abs(out.num_faces - target) <= 0.02 * target
+    tm = out.to_trimesh()
+    assert tm.is_watertight and tm.is_winding_consistent
+    assert tm.volume > 0.0
+    assert tm.area == pytest.approx(src.to_trimesh().area, rel=0.01)
+    validate_surface(out)
+    # output vertices lie on the input surface to a fraction of an input edge on average
+    _, dist, _ = trimesh.proximity.closest_point(src.to_trimesh(), out.vertices)
+    assert dist.mean() < closeness * src.mean_edge_length
+    return tm
+
+
+def test_remesh_spot_keeps_count_area_and_shape(device):
+    """spot_lowres: same face count and area, closed outward manifold, close to the input, same volume."""
+    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    out = sdf_remesh(src, device=device)
+    tm = _check_remeshed(out, src, src.num_faces)
+    assert tm.euler_number == 2
+    assert tm.volume == pytest.approx(src.to_trimesh().volume, rel=0.03)
+
+
+def test_remesh_torus_keeps_genus(device):
+    """torus.obj: genus 1 stays genus 1 (Euler characteristic V - E + F = 0)."""
+    src = load_mesh(real_mesh_path("torus.obj"))
+    out = sdf_remesh(src, device=device, marching_cubes="warp" if device == "cpu" else "auto")
+    tm = _check_remeshed(out, src, src.num_faces)
+    assert tm.euler_number == 0
+
+
+def test_remesh_open_scan_closes(device):
+    """The open Stanford bunny scan (holes in its base), decimated to ~5k faces first: a closed, valid
+    surface comes back with the face count and area of the input."""
+    raw = trimesh.load(real_mesh_path("stanford_bunny_open.obj"), process=False, force="mesh")
+    v, f = fast_simplification.simplify(raw.vertices, raw.faces, target_count=5000)
+    src = load_mesh((v, f), name="bunny_open_5k")
+    assert not src.is_watertight
+    out = sdf_remesh(src, device=device)
+    # the caps over the holes are new surface: closeness is looser than on closed inputs
+    _check_remeshed(out, src, src.num_faces, closeness=0.3)
+
+
+def test_remesh_to_fewer_faces(device):
+    """A target face count below the input's is met within 2%, with the area kept."""
+    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    out = sdf_remesh(src, faces=2500, device=device)
+    tm = _check_remeshed(out, src, 2500, closeness=0.3)
+    assert tm.euler_number == 2
+
+
+def test_remesh_raises_when_resolution_too_low():
+    """A grid too coarse for the requested face count raises instead of returning a short mesh."""
+    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    with pytest.raises(MeshError, match="fewer than"):
+        sdf_remesh(src, faces=src.num_faces, resolution=12, device="cpu")
+    with pytest.raises(ValueError, match="marching_cubes"):
+        sdf_remesh(src, device="cpu", marching_cubes="vtk")
+
+
+def test_remesh_retries_and_never_returns_a_broken_surface(monkeypatch):
+    """A decimation that breaks the surface (here: one face flipped) is retried; if every attempt
+    breaks it, MeshError is raised instead of returning the mesh."""
+    src = load_mesh(real_mesh_path("torus.obj"))
+    real = fast_simplification.simplify
+    calls = []
+    broken = {"first": 1}  # how many decimations come back broken
+
+    def flip_first_face(v, f, **kwargs):
+        calls.append(kwargs["agg"])
+        v, f = real(v, f, **kwargs)
+        if len(calls) <= broken["first"]:
+            f = f.copy()
+            f[0] = f[0, ::-1]
+        return v, f
+
+    monkeypatch.setattr(fast_simplification, "simplify", flip_first_face)
+    out = sdf_remesh(src, faces=1000, device="cpu")
+    assert len(calls) == 2
+    assert out.to_trimesh().is_winding_consistent
+    calls.clear()
+    broken["first"] = 100
+    with pytest.raises(MeshError, match="no valid surface after 9 attempt.*inconsistent"):
+        sdf_remesh(src, faces=1000, device="cpu")
+    assert len(calls) == 9
+
+
+def _tetra():
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    return v, f
+
+
+def test_validate_surface_accepts_valid():
+    """A closed, outward icosphere and a tetrahedron pass (as a Mesh, a trimesh and a (v, f) pair)."""
+    s = trimesh.creation.icosphere(subdivisions=2)
+    assert trimesh.Trimesh(*_tetra()).volume > 0.0
+    assert validate_surface(s) is None
+    assert validate_surface(_tetra()) is None
+    assert validate_surface(load_mesh(s)) is None
+
+
+def test_validate_surface_names_the_problem():
+    """Open, NaN, non-manifold edge, non-manifold vertex, inconsistent and inward winding, degenerate
+    faces: each raises MeshError naming it, with the caller's prefix."""
+    s = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+
+    with pytest.raises(MeshError, match=r"^stage 3: mesh: not watertight: 3 boundary edge"):
+        validate_surface((v, f[1:]), where="stage 3")
+
+    v_nan = v.copy()
+    v_nan[5, 1] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        validate_surface((v_nan, f))
+
+    # a fin: a third face on one edge of a closed tetrahedron
+    tv, tf = _tetra()
+    fin_v = np.vstack([tv, [[0.5, -1.0, 0.0]]])
+    fin_f = np.vstack([tf, [[0, 1, 4]]])
+    with pytest.raises(MeshError, match="non-manifold: 1 edge"):
+        validate_surface((fin_v, fin_f))
+
+    # two tetrahedra touching at one vertex: every edge has two faces, the shared vertex has two fans
+    bow_v = np.vstack([tv, -tv[1:]])
+    bow_f = np.vstack([tf, np.where(tf == 0, 0, tf + 3)[:, ::-1]])
+    assert trimesh.Trimesh(bow_v, bow_f, process=False).is_watertight
+    with pytest.raises(MeshError, match="non-manifold: 1 vertex"):
+        validate_surface((bow_v, bow_f))
+
+    with pytest.raises(MeshError, match="inward orientation"):
+        validate_surface((v, f[:, ::-1]))
+
+    one_flipped = f.copy()
+    one_flipped[7] = one_flipped[7, ::-1]
+    with pytest.raises(MeshError, match="inconsistent orientation"):
+        validate_surface((v, one_flipped))
+
+    flat = v.copy()
+    a, b, c = f[0]
+    flat[c] = 0.5 * (flat[a] + flat[b])
+    with pytest.raises(MeshError, match="degenerate"):
+        validate_surface((flat, f))

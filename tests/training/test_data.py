@@ -1,0 +1,241 @@
+"""The C-VAE dataset: trajectory reading, TSDF labels, shared normalization, re-runs, corruption, items."""
+
+import argparse
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from vnc_warp import from_arrays
+from vnc_warp.commands import dataset as dataset_cmd
+from vnc_warp.shapes import icosphere
+from vnc_warp.training import data as data_mod
+from vnc_warp.training.data import (DatasetError, TrajectoryDataset, build_dataset, normalization, read_trajectory,
+                                     verify_dataset)
+
+CENTER = np.array([1.0, -2.0, 0.5])
+RADIUS = 0.5
+SMALL = dict(num_surface=1500, num_uniform=1500, num_near=1500, noise=(0.005, 0.02), truncation=0.1)
+
+
+def _stages():
+    """Stage 0: an icosphere (642 vertices) of radius 0.5 at CENTER; stage 1: shrunk by 0.8 and bumped."""
+    s = icosphere(3, radius=RADIUS)
+    v0 = s.vertices.astype(np.float64)
+    u = v0 / RADIUS
+    v1 = 0.8 * v0 * (1.0 + 0.03 * np.sin(3.0 * u[:, :1]) * u[:, 1:2])
+    return [from_arrays(v0 + CENTER, s.faces), from_arrays(v1 + CENTER, s.faces)]
+
+
+def write_trajectory(root, meshes, ts, *, listed=None):
+    """A fake VNC-Flow trajectory: stage files plus a manifest listing ``listed`` stages (default all)."""
+    root.mkdir(parents=True)
+    stages = []
+    for i, (m, t) in enumerate(zip(meshes, ts)):
+        m.save(root / f"stage_{i:03d}.ply")
+        stages.append({"index": i, "t": t, "file": f"stage_{i:03d}.ply", "iterations": 3})
+    n = len(stages) if listed is None else listed
+    (root / "manifest.json").write_text(json.dumps({"format": "vnc-warp-trajectory/1", "source": "fake.obj",
+                                                    "stages": stages[:n], "num_stages": 2}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """Two trajectories ("alpha", "beta") sampled on the CPU into one dataset."""
+    base = tmp_path_factory.mktemp("ds")
+    trajs = [write_trajectory(base / name, _stages(), [1.0, 0.55]) for name in ("alpha", "beta")]
+    summary = build_dataset(trajs, base / "data", device="cpu", progress=False, **SMALL)
+    return base, trajs, summary
+
+
+def _analytic_sdf(q, center_n, radius_n):
+    return np.linalg.norm(q - center_n, axis=1) - radius_n
+
+
+def test_tsdf_labels_match_analytic_sphere(tmp_path, device, monkeypatch):
+    """Stage 0 is a sphere: stored TSDF labels equal clip(|q - c| - r, +-0.1) in normalized units (up to
+    the polyhedral inset), negative inside, never beyond the truncation, exactly +-0.1 far away; the
+    surface samples lie on the sphere with radial unit normals; near queries hug the surface; and the
+    signed distances reach PyTorch as torch tensors (torch in, torch out)."""
+    seen = []
+    real = data_mod.signed_distance
+
+    def spy(mesh, points, **kw):
+        out = real(mesh, points, **kw)
+        seen.append((type(points), type(out)))
+        return out
+
+    monkeypatch.setattr(data_mod, "signed_distance", spy)
+    traj = write_trajectory(tmp_path / "sphere", _stages(), [1.0, 0.55])
+    build_dataset([traj], tmp_path / "data", device=device, progress=False, **SMALL)
+    assert seen == [(torch.Tensor, torch.Tensor)] * 2
+    index = json.loads((tmp_path / "data" / "index.json").read_text())
+    shape = index["shapes"][0]
+    center, scale = np.array(shape["center"]), shape["scale"]
+    c_n, r_n = (CENTER - center) * scale, RADIUS * scale
+    with np.load(tmp_path / "data" / shape["stages"][0]["file"]) as z:
+        q, tsdf, near, surf = z["queries"], z["tsdf"], z["near"], z["surface"]
+        assert float(z["t"]) == 1.0
+    assert q.shape == (3000, 3) and near.sum() == 1500 and not near[:1500].any()
+    assert np.abs(q[~near]).max() <= 1.0
+    ref = _analytic_sdf(q.astype(np.float64), c_n, r_n)
+    inset = 0.006  # icosphere(3) faces sit up to ~0.004 r inside the sphere
+    np.testing.assert_allclose(tsdf, np.clip(ref, -0.1, 0.1), atol=inset)
+    assert np.abs(tsdf).max() <= 0.1 + 1e-7
+    far = np.abs(ref) > 0.1 + inset
+    assert far.sum() > 500 and np.all(np.abs(tsdf[far]) == np.float32(0.1))
+    assert np.all(np.sign(tsdf[np.abs(ref) > inset]) == np.sign(ref[np.abs(ref) > inset]))
+    assert np.abs(ref[near]).max() < 6 * 0.02 + inset
+    assert np.abs(ref[near][:750]).max() < 6 * 0.005 + inset
+    p, n = surf[:, :3].astype(np.float64), surf[:, 3:].astype(np.float64)
+    assert np.abs(_analytic_sdf(p, c_n, r_n)).max() < inset
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    radial = (p - c_n) / np.linalg.norm(p - c_n, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", n, radial).min() > 0.98
+
+
+def test_shared_normalization(built):
+    """Every stage uses stage 0's normalization: centre = stage-0 bbox centre, scale = 1.8 / its max
+    extent; stage-1 samples map back onto the stage-1 world mesh, and stage 1 (shrunk by 0.8) spans
+    about 0.8 * 1.8, not 1.8."""
+    base, trajs, _ = built
+    index = json.loads((base / "data" / "index.json").read_text())
+    s0 = trimesh.load(trajs[0] / "stage_000.ply", process=False)
+    lo, hi = s0.vertices.min(0), s0.vertices.max(0)
+    shape = index["shapes"][0]
+    np.testing.assert_allclose(shape["center"], 0.5 * (lo + hi), atol=1e-6)
+    assert shape["scale"] == pytest.approx(1.8 / (hi - lo).max(), rel=1e-6)
+    assert shape["truncation"] == 0.1
+    assert [st["t"] for st in shape["stages"]] == [1.0, 0.55]
+    with np.load(base / "data" / shape["stages"][1]["file"]) as z:
+        p = z["surface"][:, :3].astype(np.float64)
+        assert float(z["t"]) == pytest.approx(0.55)
+    world = p / shape["scale"] + np.array(shape["center"])
+    s1 = trimesh.load(trajs[0] / "stage_001.ply", process=False)
+    _, dist, _ = trimesh.proximity.closest_point(s1, world[:300])
+    assert dist.max() < 1e-5
+    extent = (p.max(0) - p.min(0)).max()
+    assert 0.8 * 1.8 * 0.95 < extent < 0.8 * 1.8 * 1.1
+
+
+def test_rerun_skips_finished_samples(built):
+    """A second build with the same settings writes nothing: every stage is skipped, files untouched;
+    other settings into the same folder are refused."""
+    base, trajs, summary = built
+    assert summary["built"] == 4 and summary["skipped"] == 0 and summary["shapes"] == 2
+    files = sorted((base / "data").rglob("*.npz"))
+    stamps = [f.stat().st_mtime_ns for f in files]
+    again = build_dataset(trajs, base / "data", device="cpu", progress=False, **SMALL)
+    assert again["built"] == 0 and again["rebuilt"] == 0 and again["skipped"] == 4
+    assert [f.stat().st_mtime_ns for f in files] == stamps
+    assert verify_dataset(base / "data") == 4
+    with pytest.raises(ValueError, match="other settings"):
+        build_dataset(trajs, base / "data", device="cpu", progress=False, **dict(SMALL, truncation=0.2))
+
+
+def test_corrupt_files_are_detected_and_rebuilt(built, tmp_path):
+    """A flipped byte fails the checksum, a truncated file fails to load, a file without 'tsdf' is
+    reported as missing a key: each raises DatasetError naming the file (never returned as an item);
+    a re-run of the builder rebuilds the damaged file."""
+    base, trajs, _ = built
+    root = tmp_path / "data"
+    shutil.copytree(base / "data", root)
+    target = root / "alpha" / "stage_001.npz"
+    raw = bytearray(target.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    target.write_bytes(bytes(raw))
+    ds = TrajectoryDataset(root, split="all", num_surface=64, num_queries=64)
+    ds[0]
+    with pytest.raises(DatasetError, match=r"alpha/stage_001\.npz: checksum mismatch"):
+        ds[1]
+    with pytest.raises(DatasetError, match="1 of 4"):
+        verify_dataset(root)
+    with pytest.warns(UserWarning, match="rebuilding: .*checksum mismatch"):
+        summary = build_dataset(trajs, root, device="cpu", progress=False, **SMALL)
+    assert summary["rebuilt"] == 1 and summary["skipped"] == 3
+    assert TrajectoryDataset(root, split="all", num_surface=64, num_queries=64)[1]["tsdf"].shape == (64,)
+
+    index = json.loads((root / "index.json").read_text())
+    target.write_bytes(target.read_bytes()[:1000])
+    index["shapes"][0]["stages"][1]["sha256"] = data_mod._sha256(target)
+    with np.load(root / "beta" / "stage_000.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "tsdf"}
+    np.savez(root / "beta" / "stage_000.npz", **arrays)
+    index["shapes"][1]["stages"][0]["sha256"] = data_mod._sha256(root / "beta" / "stage_000.npz")
+    (root / "index.json").write_text(json.dumps(index))
+    ds = TrajectoryDataset(root, split="all", num_surface=64, num_queries=64)
+    with pytest.raises(DatasetError, match="cannot load sample file"):
+        ds[1]
+    with pytest.raises(DatasetError, match=r"missing key\(s\) \['tsdf'\]"):
+        ds[2]
+
+
+def test_dataset_items_splits_and_seeding(built):
+    """Items have the documented shapes and dtypes, half the queries near the surface, the stage's t;
+    holdout names select the test split with global shape ids; subsets are reproducible per
+    (seed, epoch, index) and change with the epoch."""
+    base, _, _ = built
+    train = TrajectoryDataset(base / "data", num_surface=256, num_queries=512, holdout=["beta"], seed=3)
+    test = TrajectoryDataset(base / "data", num_surface=256, num_queries=512, split="test", holdout=["beta"])
+    assert len(train) == 2 and len(test) == 2 and train.shape_names == ["alpha", "beta"]
+    assert train.item_ids() == [(0, 0), (0, 1)] and test.item_ids() == [(1, 0), (1, 1)]
+    item = train[1]
+    expect = {"surface": ((256, 6), torch.float32), "queries": ((512, 3), torch.float32),
+              "tsdf": ((512,), torch.float32), "near": ((512,), torch.bool), "t": ((), torch.float32),
+              "shape_id": ((), torch.int64), "stage": ((), torch.int64)}
+    assert set(item) == set(expect)
+    for k, (shape, dtype) in expect.items():
+        assert tuple(item[k].shape) == shape and item[k].dtype == dtype, k
+    assert item["t"].item() == pytest.approx(0.55) and item["stage"].item() == 1 and item["shape_id"].item() == 0
+    assert int(item["near"].sum()) == 256
+    assert test[0]["shape_id"].item() == 1
+    np.testing.assert_allclose(torch.linalg.norm(item["surface"][:, 3:], dim=1).numpy(), 1.0, atol=1e-5)
+    again = TrajectoryDataset(base / "data", num_surface=256, num_queries=512, holdout=["beta"], seed=3)[1]
+    for k in expect:
+        assert torch.equal(item[k], again[k]), k
+    train.set_epoch(1)
+    assert not torch.equal(train[1]["queries"], item["queries"])
+    batch = next(iter(torch.utils.data.DataLoader(train, batch_size=2)))
+    assert batch["surface"].shape == (2, 256, 6) and batch["t"].shape == (2,)
+    with pytest.raises(ValueError, match="holdout names"):
+        TrajectoryDataset(base / "data", holdout=["gamma"])
+    with pytest.raises(ValueError, match="empty"):
+        TrajectoryDataset(base / "data", split="test")
+
+
+def test_partial_trajectory_and_bad_manifests(tmp_path):
+    """Only listed stages count (a partially written trajectory); a wrong format string, a missing
+    stage file or a missing stage 0 is refused with the manifest's path in the message."""
+    traj = write_trajectory(tmp_path / "partial", _stages(), [1.0, 0.55], listed=1)
+    tr = read_trajectory(traj)
+    assert [s.index for s in tr.stages] == [0] and tr.name == "partial"
+    center, scale = normalization(tr.load_stage(0))
+    assert scale == pytest.approx(1.8 / np.ptp(tr.load_stage(0).vertices, axis=0).max(), rel=1e-6)
+    manifest = json.loads((traj / "manifest.json").read_text())
+    (traj / "manifest.json").write_text(json.dumps(dict(manifest, format="other/2")))
+    with pytest.raises(DatasetError, match="format must be"):
+        read_trajectory(traj)
+    (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], index=1)])))
+    with pytest.raises(DatasetError, match="stage 0 is not listed"):
+        read_trajectory(traj)
+    (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], file="x.ply")])))
+    with pytest.raises(FileNotFoundError, match="x.ply"):
+        read_trajectory(traj)
+
+
+def test_dataset_command(tmp_path, capsys):
+    """`vnc-warp dataset` builds a dataset from a partial trajectory (one listed stage) and verifies it."""
+    traj = write_trajectory(tmp_path / "cmd", _stages(), [1.0, 0.55], listed=1)
+    parser = argparse.ArgumentParser()
+    dataset_cmd.add_arguments(parser)
+    args = parser.parse_args([str(traj), "--out", str(tmp_path / "d"), "--device", "cpu", "--num-surface", "200",
+                              "--num-uniform", "200", "--num-near", "200", "--verify", "--quiet"])
+    assert dataset_cmd.run(args) == 0
+    out = capsys.readouterr().out
+    assert "built 1" in out and "verified 1" in out
+    index = json.loads((tmp_path / "d" / "index.json").read_text())
+    assert len(index["shapes"][0]["stages"]) == 1

@@ -1,0 +1,298 @@
+"""Training loop, checkpoints, DDP, inference and the train/generate commands (vnc_warp.training)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+import trimesh
+
+from vnc_warp.cli import main
+from vnc_warp.training.checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
+from vnc_warp.training.config import named_config
+from vnc_warp.training.inference import decode_mesh, extract_mesh
+from vnc_warp.training.model import build_model
+from vnc_warp.training.synthetic import EllipsoidTrajectories, ellipsoid_sdf
+from vnc_warp.training.train import Stage0Input, lr_factor, train
+
+OVERFIT_STEPS = 150
+LOSS_DROP = 5.0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Tiny models run fastest on one thread; more threads oversubscribe a shared small CPU."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _rows(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+
+
+def _tiny(**optim):
+    cfg = named_config("tiny")
+    cfg.optim = dataclasses.replace(cfg.optim, **optim)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def overfit_run(tmp_path_factory):
+    """Tiny C-VAE-I trained on one synthetic trajectory (4 stages) for OVERFIT_STEPS steps."""
+    out = tmp_path_factory.mktemp("overfit")
+    ds = EllipsoidTrajectories(num_shapes=1, num_stages=4, seed=1)
+    summary = train(_tiny(total_steps=OVERFIT_STEPS), data=ds, out_dir=out, device="cpu", progress=False)
+    return out, ds, summary
+
+
+def test_overfits_one_trajectory(overfit_run):
+    """The tiny model overfits one trajectory: the loss falls >= 5x within 150 steps (first step vs last 10)."""
+    out, _, summary = overfit_run
+    rows = _rows(out)
+    assert [r["step"] for r in rows] == list(range(1, OVERFIT_STEPS + 1))
+    first, final = rows[0]["loss"], float(np.mean([r["loss"] for r in rows[-10:]]))
+    assert first / final >= LOSS_DROP, (first, final)
+    assert all(math.isfinite(r["loss"]) and r["samples_per_s"] > 0 for r in rows)
+    assert summary["step"] == OVERFIT_STEPS and summary["samples_per_s"] > 0
+    assert rows[0]["beta_kl"] == 0.0 and rows[-1]["beta_kl"] == pytest.approx(1e-4)  # linear beta curriculum
+
+
+def test_decoded_meshes_follow_time(overfit_run):
+    """decode_mesh on the overfit model: the t = 1 mesh lies closer to the stage-0 ellipsoid than to the
+    t = 0 sphere, the t = 0 mesh the other way round (analytic SDFs as the oracle)."""
+    out, ds, _ = overfit_run
+    model, _ = load_model(out / "checkpoints" / "last.pt")
+    cond = ds[0]["surface"]  # stage 0 = the encoder input
+    err = {}
+    for t in (0.0, 1.0):
+        mesh = decode_mesh(model, cond, t, resolution=32)
+        for ref in (0.0, 1.0):
+            err[t, ref] = float(np.abs(ellipsoid_sdf(mesh.vertices, ds.axes(0, ref))).mean())
+    assert err[1.0, 1.0] < err[1.0, 0.0] and err[0.0, 0.0] < err[0.0, 1.0], err
+    assert err[1.0, 1.0] < 0.08 and err[0.0, 0.0] < 0.08, err
+    z, _ = model.encode(cond[None], torch.tensor([1.0]), sample=False)
+    assert decode_mesh(model, z, resolution=24).num_faces > 0  # from latents
+
+
+def test_extract_mesh_sphere_and_units():
+    """Marching cubes of an analytic sphere SDF gives an outward, watertight sphere in the input's units."""
+    a = np.linspace(-1, 1, 40)
+    x, y, z = np.meshgrid(a, a, a, indexing="ij")
+    sdf = np.sqrt(x**2 + y**2 + z**2) - 0.5
+    mesh = extract_mesh(sdf, center=[10.0, 0.0, -2.0], scale=0.1)
+    r = np.linalg.norm(mesh.vertices - [10.0, 0.0, -2.0], axis=1)
+    assert mesh.is_watertight and abs(r.mean() - 5.0) < 0.05
+    assert mesh.volume() == pytest.approx(4 / 3 * math.pi * 125, rel=0.02)
+    with pytest.raises(ValueError, match="no 0.0 crossing"):
+        extract_mesh(sdf + 10.0)
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    """6 steps in one go equal 3 steps, stop, resume to 6 (mid-epoch stop): identical losses, lr and grad norms."""
+    ds = EllipsoidTrajectories(num_shapes=2, num_stages=4, seed=2)  # 8 items, 2 batches per epoch
+    cfg = _tiny(warmup_steps=2, total_steps=10)
+    train(cfg, data=ds, out_dir=tmp_path / "a", device="cpu", stop_at=6, progress=False)
+    train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", stop_at=3, progress=False)
+    ck = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")
+    assert (ck["step"], ck["epoch"], ck["batch_in_epoch"]) == (3, 1, 1)
+    train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", resume=True, stop_at=6, progress=False)
+    a, b = _rows(tmp_path / "a"), _rows(tmp_path / "b")
+    assert [r["step"] for r in b] == list(range(1, 7))
+    for ra, rb in zip(a, b):
+        for key in ("loss", "tsdf", "kl", "eik", "grad_norm", "lr", "beta_kl", "epoch"):
+            assert ra[key] == pytest.approx(rb[key], abs=1e-6, rel=0), (ra["step"], key)
+    wa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["model"]
+    wb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["model"]
+    assert all(torch.allclose(wa[k], wb[k], atol=1e-6) for k in wa)
+
+
+def test_checkpoint_is_weights_only_and_atomic(overfit_run):
+    """The checkpoint loads with torch.load(weights_only=True), holds only tensors and primitives and
+    leaves no tmp file."""
+    out, _, _ = overfit_run
+    path = out / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+
+    def walk(x):
+        if isinstance(x, dict):
+            assert all(isinstance(k, (str, int)) for k in x)
+            for v in x.values():
+                walk(v)
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                walk(v)
+        else:
+            assert x is None or isinstance(x, (torch.Tensor, int, float, str, bool)), type(x)
+
+    walk(state)
+    assert state["config"]["model"]["kind"] == "cvae1" and len(state["rng"]) == 1
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.pt"]
+    assert json.loads((out / "config.json").read_text()) == state["config"]
+
+
+def test_lr_schedule():
+    """Linear warm-up to the peak, cosine decay to min_lr_ratio at total_steps, flat after."""
+    f = dict(warmup_steps=10, total_steps=110, min_lr_ratio=0.1)
+    assert lr_factor(0, **f) == pytest.approx(0.1) and lr_factor(9, **f) == pytest.approx(1.0)
+    assert lr_factor(60, **f) == pytest.approx(0.1 + 0.9 * 0.5)
+    assert lr_factor(110, **f) == pytest.approx(0.1) and lr_factor(500, **f) == pytest.approx(0.1)
+
+
+def test_stage0_input_wrapper():
+    """Stage0Input gives every stage of a shape the surface of that shape's stage 0, keeping its own queries and t."""
+    ds = EllipsoidTrajectories(num_shapes=2, num_stages=3, num_surface=30, num_queries=20)
+    wrapped = Stage0Input(ds)
+    for i in range(len(ds)):
+        sid, _ = ds.item_ids()[i]
+        assert torch.equal(wrapped[i]["surface"], ds[sid * 3]["surface"])
+        assert torch.equal(wrapped[i]["tsdf"], ds[i]["tsdf"]) and float(wrapped[i]["t"]) == float(ds[i]["t"])
+
+    class NoStage0(torch.utils.data.Dataset):
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, i):
+            return {**ds[1], "stage": torch.tensor(1)}
+
+    with pytest.raises(ValueError, match="no stage-0 item"):
+        Stage0Input(NoStage0())
+
+
+def test_cvae2_trains_on_a_pretrained_vae(tmp_path):
+    """A tiny plain VAE is trained, then C-VAE-II on its checkpoint: the frozen encoder's weights stay those of
+    the VAE while the decoder moves; a wrong pre-trained checkpoint or none is refused clearly."""
+    ds = EllipsoidTrajectories(num_shapes=1, num_stages=4, seed=3)
+    vae_cfg = named_config("tiny-vae")
+    train(vae_cfg, data=ds, out_dir=tmp_path / "vae", device="cpu", stop_at=3, progress=False)
+    vae_ckpt = tmp_path / "vae" / "checkpoints" / "last.pt"
+    vae = load_checkpoint(vae_ckpt)["model"]
+    cfg = named_config("tiny-cvae2")
+    with pytest.raises(ValueError, match="needs model.pretrained"):
+        build_model(cfg.model)
+    cfg.model = dataclasses.replace(cfg.model, pretrained=str(vae_ckpt))
+    train(cfg, data=ds, out_dir=tmp_path / "cvae2", device="cpu", stop_at=4, progress=False)
+    state = load_checkpoint(tmp_path / "cvae2" / "checkpoints" / "last.pt")["model"]
+    for key, value in vae.items():
+        if key.startswith(("encoder.", "bottleneck.")):
+            assert torch.equal(state["frozen." + key], value), key
+    moved = [k for k in vae if k.startswith("decoder.") and not torch.equal(state[k], vae[k])]
+    assert moved
+    cfg.model = dataclasses.replace(cfg.model, pretrained=str(tmp_path / "cvae2" / "checkpoints" / "last.pt"))
+    with pytest.raises(CheckpointError, match="needs a plain VAE checkpoint"):
+        build_model(cfg.model)
+    bad = dataclasses.replace(cfg.model, pretrained=str(vae_ckpt), width=96, heads=4)
+    with pytest.raises(ValueError, match="architecture differs"):
+        build_model(bad)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, out: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    ds = EllipsoidTrajectories(num_shapes=2, num_stages=4, seed=4)
+    cfg = _tiny(total_steps=4)
+    cfg.data = dataclasses.replace(cfg.data, batch_size=2)
+    cfg.ckpt_every = 2
+    summary = train(cfg, data=ds, out_dir=out, device="cpu", progress=False)
+    model, _ = load_model(Path(out) / "checkpoints" / "last.pt")
+    summary["param_sum"] = float(sum(p.double().sum() for p in model.parameters()))
+    Path(out, f"rank{rank}.json").write_text(json.dumps(summary))
+
+
+def test_ddp_two_process_gloo(tmp_path):
+    """A real two-process gloo DDP run on CPU: both ranks run 4 steps, rank 0 alone logs and writes one checkpoint."""
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    s0, s1 = (json.loads((tmp_path / f"rank{r}.json").read_text()) for r in (0, 1))
+    assert (s0["rank"], s1["rank"]) == (0, 1) and s0["world_size"] == s1["world_size"] == 2
+    assert s0["step"] == s1["step"] == 4
+    assert s0["last"] == pytest.approx(s1["last"])  # logged values are all-reduced means
+    assert s0["param_sum"] == s1["param_sum"]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["last.pt"]
+    ck = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    assert ck["world_size"] == 2 and len(ck["rng"]) == 2 and ck["step"] == 4
+    assert not torch.equal(ck["rng"][0]["torch"], ck["rng"][1]["torch"])  # per-rank RNG streams
+    assert [r["step"] for r in _rows(tmp_path)] == [1, 2, 3, 4]
+
+
+def test_bad_paths_give_clear_errors(tmp_path):
+    """Missing data folder, folder without index.json, resume without checkpoint, foreign/corrupt checkpoint files."""
+    cfg = _tiny(total_steps=2)
+    with pytest.raises(FileNotFoundError, match="data folder not found"):
+        train(cfg, data=tmp_path / "nope", out_dir=tmp_path / "run", progress=False)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no index.json"):
+        train(cfg, data=tmp_path / "empty", out_dir=tmp_path / "run", progress=False)
+    ds = EllipsoidTrajectories(num_shapes=1, num_stages=4)
+    with pytest.raises(FileNotFoundError, match="resume: no checkpoint"):
+        train(cfg, data=ds, out_dir=tmp_path / "run", resume=True, progress=False)
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="cannot read checkpoint"):
+        load_checkpoint(tmp_path / "garbage.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not a vnc-warp checkpoint"):
+        load_model(tmp_path / "foreign.pt")
+    model = build_model(cfg.model)
+    save_checkpoint(tmp_path / "ok.pt", model=model, config=named_config("tiny-vae"), step=0)
+    with pytest.raises(CheckpointError, match="do not match"):
+        load_model(tmp_path / "ok.pt")
+
+    class Broken(torch.utils.data.Dataset):
+        def __len__(self):
+            return 8
+
+        def __getitem__(self, i):
+            return {k: v for k, v in ds[0].items() if k != "near"}
+
+    bad = _tiny(total_steps=1)
+    bad.data = dataclasses.replace(bad.data, encoder_input="item")
+    with pytest.raises(ValueError, match=r"lack key\(s\) \['near'\]"):
+        train(bad, data=Broken(), out_dir=tmp_path / "run2", progress=False)
+
+
+def test_cli_train_and_generate(overfit_run, tmp_path, capsys):
+    """``vnc-warp generate`` writes one mesh per t (in the input's units) and a JSON; bad paths exit 2
+    with a message."""
+    out, ds, _ = overfit_run
+    axes = ds.axes(0, 1.0)
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    offset = np.array([100.0, -5.0, 3.0])
+    units = 40.0  # the input lives in other units; generate must normalise it like the training data
+    verts = sphere.vertices * axes * units + offset
+    src = tmp_path / "ellipsoid.obj"
+    trimesh.Trimesh(verts, sphere.faces).export(src)
+    gen = tmp_path / "gen"
+    code = main(["generate", str(out / "checkpoints" / "last.pt"), "--input", str(src), "--t", "0,1", "--out", str(gen),
+                 "--resolution", "32", "--device", "cpu"])
+    assert code == 0
+    report = json.loads((gen / "generate.json").read_text())
+    assert [e["t"] for e in report["meshes"]] == [0.0, 1.0] and report["scale"] == pytest.approx(1 / units, rel=1e-3)
+    m1 = trimesh.load(gen / report["meshes"][1]["file"])
+    norm = (np.asarray(m1.vertices) - offset) / units
+    assert np.abs(ellipsoid_sdf(norm, axes)).mean() < 0.08
+    capsys.readouterr()
+    assert main(["generate", str(tmp_path / "none.pt"), "--input", str(src), "--out", str(gen)]) == 2
+    assert "checkpoint not found" in capsys.readouterr().err
+    assert main(["generate", str(out), "--input", str(tmp_path / "none.obj"), "--out", str(gen)]) == 2
+    assert "mesh file not found" in capsys.readouterr().err
+    assert main(["train", "--config", "tiny", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")]) == 2
+    assert "data folder not found" in capsys.readouterr().err
+    assert main(["train", "--config", "no-such", "--data", str(tmp_path), "--out", str(tmp_path / "r")]) == 2
+    assert "neither a named config" in capsys.readouterr().err

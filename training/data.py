@@ -1,0 +1,483 @@
+"""Truncated-SDF training data from VNC-Flow trajectories (Sec. 3.3, trained with L_tsdf).
+
+A trajectory directory (written by VNC-Flow, Algorithm 1) holds ``manifest.json`` =
+``{"format": "vnc-warp-trajectory/1", "stages": [{"index": i, "t": t, "file": "stage_000.ply"}, ...]}``
+with stage 0 at ``t = 1`` (Eq. (7)); only the stages listed count. :func:`build_dataset` samples every
+stage once into ``<out>/<shape>/stage_<index>.npz`` and writes ``<out>/index.json``; every stage of a
+trajectory shares the normalization of its stage 0 (``x_norm = (x - center) * scale`` with
+``center`` the bounding-box centre and ``scale = 1.8 / max extent``), so ``t`` is the only thing that
+changes along a trajectory. :class:`TrajectoryDataset` reads the samples, checks each file against
+its SHA-256 in the index, and draws random subsets per item.
+
+Sample file keys: ``surface`` (Ns, 6) float32 xyz + unit normal, ``queries`` (Nq, 3) float32,
+``tsdf`` (Nq,) float32 in [-truncation, truncation] (negative inside), ``near`` (Nq,) bool (query drawn
+near the surface), ``t`` () float32, ``config`` () str (JSON of the settings that produced the file).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import warnings
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from vnc_warp._device import get_device
+from vnc_warp.mesh import Mesh, MeshError, load_mesh
+from vnc_warp.sdf import signed_distance
+
+__all__ = [
+    "DATASET_FORMAT",
+    "TRAJECTORY_FORMAT",
+    "DatasetError",
+    "Trajectory",
+    "TrajectoryStage",
+    "TrajectoryDataset",
+    "build_dataset",
+    "normalization",
+    "read_trajectory",
+    "sample_surface",
+    "verify_dataset",
+]
+
+TRAJECTORY_FORMAT = "vnc-warp-trajectory/1"
+DATASET_FORMAT = "vnc-warp-tsdf/1"
+_SAMPLE_KEYS = ("surface", "queries", "tsdf", "near", "t", "config")
+
+
+class DatasetError(ValueError):
+    """A dataset or trajectory that cannot be used; the message names the file and what is wrong."""
+
+
+@dataclass(frozen=True)
+class TrajectoryStage:
+    """One finished stage of a trajectory: stage ``index``, normalized time ``t`` (Eq. (7)), mesh file."""
+
+    index: int
+    t: float
+    path: Path
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A VNC-Flow trajectory read from its manifest; ``stages[0]`` is stage 0 (``t = 1``)."""
+
+    root: Path
+    name: str
+    source: str
+    stages: tuple[TrajectoryStage, ...]
+
+    def load_stage(self, position: int) -> Mesh:
+        """The mesh of ``stages[position]``."""
+        st = self.stages[position]
+        return load_mesh(st.path, name=f"{self.name}/{st.path.name}")
+
+
+def read_trajectory(traj_dir: str | os.PathLike) -> Trajectory:
+    """Read a trajectory manifest; the shape name is the directory name.
+
+    Raises:
+        FileNotFoundError: no ``manifest.json`` or a listed stage file is missing.
+        DatasetError: unreadable manifest, wrong format string, no stages, missing stage 0,
+            missing/duplicate stage keys or non-finite ``t``.
+    """
+    root = Path(traj_dir).resolve()
+    path = root / "manifest.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"trajectory manifest not found: {path}")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: unreadable manifest ({exc})") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != TRAJECTORY_FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise DatasetError(f"{path}: format must be {TRAJECTORY_FORMAT!r}, got {got!r}")
+    raw = manifest.get("stages")
+    if not isinstance(raw, list) or not raw:
+        raise DatasetError(f"{path}: no finished stages listed")
+    stages = []
+    for k, st in enumerate(raw):
+        if not isinstance(st, dict) or not {"index", "t", "file"} <= st.keys():
+            raise DatasetError(f"{path}: stages[{k}] needs keys 'index', 't' and 'file', got {st!r}")
+        t = float(st["t"])
+        if not np.isfinite(t):
+            raise DatasetError(f"{path}: stages[{k}] has non-finite t = {st['t']!r}")
+        file = root / st["file"]
+        if not file.is_file():
+            raise FileNotFoundError(f"{path}: stages[{k}] lists {st['file']!r}, which does not exist")
+        stages.append(TrajectoryStage(int(st["index"]), t, file))
+    stages.sort(key=lambda s: s.index)
+    indices = [s.index for s in stages]
+    if len(set(indices)) != len(indices):
+        raise DatasetError(f"{path}: duplicate stage indices {indices}")
+    if indices[0] != 0:
+        raise DatasetError(f"{path}: stage 0 is not listed (stages {indices}); its normalization is needed")
+    return Trajectory(root, root.name, str(manifest.get("source", "")), tuple(stages))
+
+
+def normalization(mesh: Mesh) -> tuple[np.ndarray, float]:
+    """Centre and scale that map ``mesh`` into [-0.9, 0.9]^3: ``x_norm = (x - center) * scale``.
+
+    Returns:
+        ``center`` (3,) float64 (bounding-box centre) and ``scale = 1.8 / max bbox extent``.
+    """
+    v = mesh.vertices.astype(np.float64)
+    lo, hi = v.min(0), v.max(0)
+    extent = float((hi - lo).max())
+    if not extent > 0.0:
+        raise MeshError(f"{mesh.name}: zero bounding-box extent, cannot normalize")
+    return 0.5 * (lo + hi), 1.8 / extent
+
+
+def sample_surface(mesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted uniform points on the surface and the unit normals of their faces.
+
+    Args:
+        mesh: the surface: a :class:`Mesh` or anything with ``vertices`` (V, 3) and ``faces`` (F, 3)
+            (zero-area faces are never drawn).
+        n: number of points.
+        rng: random generator (the only source of randomness).
+
+    Returns:
+        points (n, 3) float64 and normals (n, 3) float64 (outward for a closed :class:`Mesh`).
+    """
+    v = mesh.vertices.astype(np.float64)
+    f = mesh.faces
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    cross = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(cross, axis=1)
+    cdf = np.cumsum(area2)
+    face = np.minimum(np.searchsorted(cdf, rng.uniform(0.0, cdf[-1], size=n), side="right"), f.shape[0] - 1)
+    r1 = np.sqrt(rng.uniform(size=(n, 1)))
+    r2 = rng.uniform(size=(n, 1))
+    points = (1.0 - r1) * a[face] + r1 * (1.0 - r2) * b[face] + r1 * r2 * c[face]
+    return points, cross[face] / area2[face, None]
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _read_sample(path: Path, expected_sha: str | None = None) -> dict[str, np.ndarray]:
+    """Load and check one sample file; raises :class:`DatasetError` naming the file and the fault."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read sample file ({exc})") from exc
+    if expected_sha is not None and hashlib.sha256(data).hexdigest() != expected_sha:
+        raise DatasetError(f"{path}: checksum mismatch with index.json (corrupt or partially written file)")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except Exception as exc:  # zipfile/numpy raise many types for damaged archives
+        raise DatasetError(f"{path}: cannot load sample file ({type(exc).__name__}: {exc})") from exc
+    missing = [k for k in _SAMPLE_KEYS if k not in arrays]
+    if missing:
+        raise DatasetError(f"{path}: missing key(s) {missing} (found {sorted(arrays)})")
+    s, q, d, near = arrays["surface"], arrays["queries"], arrays["tsdf"], arrays["near"]
+    nq = q.shape[0] if q.ndim == 2 else -1
+    if (s.ndim != 2 or s.shape[1] != 6 or s.dtype != np.float32 or q.ndim != 2 or q.shape[1] != 3
+            or q.dtype != np.float32 or d.shape != (nq,) or d.dtype != np.float32 or near.shape != (nq,)
+            or near.dtype != np.bool_):
+        raise DatasetError(f"{path}: bad array shapes/dtypes: surface {s.shape} {s.dtype}, queries {q.shape} "
+                           f"{q.dtype}, tsdf {d.shape} {d.dtype}, near {near.shape} {near.dtype}")
+    return arrays
+
+
+def _write_sample(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write atomically (temporary file + rename) and return the file's SHA-256."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    os.replace(tmp, path)
+    return _sha256(path)
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)
+
+
+def _read_index(root: Path) -> dict:
+    path = root / "index.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"dataset index not found: {path} (build it with `vnc-warp dataset`)")
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: unreadable index ({exc})") from exc
+    if not isinstance(index, dict) or index.get("format") != DATASET_FORMAT or not isinstance(index.get("shapes"), list):
+        raise DatasetError(f"{path}: not a {DATASET_FORMAT!r} index")
+    return index
+
+
+def _sample_stage(mesh: Mesh, rng: np.random.Generator, *, num_surface: int, num_uniform: int, num_near: int,
+                  noise: Sequence[float], truncation: float, device: wp.context.Device) -> dict[str, np.ndarray]:
+    """Surface points, queries and truncated signed distances of one normalized stage mesh."""
+    surf, normals = sample_surface(mesh, num_surface, rng)
+    parts = [rng.uniform(-1.0, 1.0, size=(num_uniform, 3))]
+    per_level = np.diff(np.linspace(0, num_near, len(noise) + 1).round().astype(int))
+    for sigma, count in zip(noise, per_level):
+        pts, _ = sample_surface(mesh, int(count), rng)
+        parts.append(pts + rng.normal(0.0, sigma, size=pts.shape))
+    queries = np.concatenate(parts).astype(np.float32)
+    # The labels stay on the device from Warp to PyTorch: torch in, torch out (no host round trip).
+    q = torch.from_numpy(queries).to(wp.device_to_torch(device))
+    sd = signed_distance(mesh, q, device=device, max_dist=truncation, sign="winding")
+    tsdf = torch.clamp(sd, -truncation, truncation)
+    near = np.zeros(queries.shape[0], dtype=bool)
+    near[num_uniform:] = True
+    return {
+        "surface": np.concatenate([surf, normals], axis=1).astype(np.float32),
+        "queries": queries,
+        "tsdf": tsdf.cpu().numpy(),
+        "near": near,
+    }
+
+
+def build_dataset(
+    traj_dirs: Sequence[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    *,
+    num_surface: int = 16384,
+    num_uniform: int = 16384,
+    num_near: int = 16384,
+    noise: Sequence[float] = (0.005, 0.02),
+    truncation: float = 0.1,
+    device=None,
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Sample every listed stage of every trajectory into ``out_dir`` (written once, read many times).
+
+    Per stage: ``num_surface`` area-weighted surface points with face normals, ``num_uniform`` queries
+    uniform in [-1, 1]^3 and ``num_near`` queries near the surface (surface points plus Gaussian noise,
+    split evenly over the ``noise`` standard deviations), labelled with signed distances
+    (:func:`vnc_warp.sdf.signed_distance`, winding-number sign, negative inside) clamped to
+    ``[-truncation, truncation]``; all lengths in normalized units (see :func:`normalization`).
+
+    A stage whose file already exists, loads, matches its checksum in ``index.json`` and was produced
+    by the same settings, normalization and stage mesh is skipped; a corrupt or stale one is rebuilt
+    (with a warning). Shapes already in ``index.json`` but not in ``traj_dirs`` are kept.
+
+    Args:
+        traj_dirs: trajectory directories; the directory name is the shape name (must be unique).
+        out_dir: dataset directory (created).
+        num_surface, num_uniform, num_near: samples per stage.
+        noise: near-surface noise standard deviations (normalized units), e.g. two levels.
+        truncation: TSDF truncation distance (normalized units).
+        device: Warp device for the signed distances (None: preferred device).
+        seed: base seed; stage ``i`` of shape ``name`` draws from ``(seed, crc32(name), i)``.
+        overwrite: allow ``out_dir`` to have been built with different settings (its samples are rebuilt).
+        progress: show a tqdm progress bar.
+
+    Returns:
+        ``{"index": path of index.json, "built": n, "skipped": n, "rebuilt": n, "shapes": n}``.
+
+    Raises:
+        ValueError: bad settings, duplicate shape names, or ``out_dir`` built with other settings
+            (unless ``overwrite``).
+        DatasetError / FileNotFoundError / MeshError: unusable trajectories (named in the message).
+    """
+    from tqdm.auto import tqdm
+
+    if min(num_surface, num_near) < 1 or num_uniform < 0:
+        raise ValueError(f"build_dataset: sample counts must be positive, got surface={num_surface}, "
+                         f"uniform={num_uniform}, near={num_near}")
+    noise = [float(s) for s in noise]
+    if not noise or min(noise) <= 0.0 or len(noise) > num_near:
+        raise ValueError(f"build_dataset: noise must list positive standard deviations, got {noise}")
+    if not truncation > 0.0:
+        raise ValueError(f"build_dataset: truncation must be positive, got {truncation}")
+    config = {"num_surface": int(num_surface), "num_uniform": int(num_uniform), "num_near": int(num_near),
+              "noise": noise, "truncation": float(truncation), "seed": int(seed)}
+    trajs = [read_trajectory(d) for d in traj_dirs]
+    names = [tr.name for tr in trajs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"build_dataset: trajectory directory names must be unique, repeated: {dup}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    shapes: dict[str, dict] = {}
+    if (out / "index.json").is_file():
+        try:
+            old = _read_index(out)
+        except DatasetError as exc:
+            warnings.warn(f"{exc}; rebuilding the index", stacklevel=2)
+            old = None
+        if old is not None:
+            if old.get("config") != config and not overwrite:
+                raise ValueError(f"{out} was built with other settings {old.get('config')} (now {config}); "
+                                 "use another directory or overwrite=True (--overwrite)")
+            if old.get("config") == config:
+                shapes = {s["name"]: s for s in old["shapes"]}
+    dev = get_device(device)
+    counts = {"built": 0, "skipped": 0, "rebuilt": 0}
+    bar = tqdm(total=sum(len(tr.stages) for tr in trajs), unit="stage", disable=not progress, desc="dataset")
+    for tr in trajs:
+        center, scale = normalization(tr.load_stage(0))
+        known = {st["file"]: st.get("sha256") for st in shapes.get(tr.name, {}).get("stages", [])}
+        entries = []
+        for pos, st in enumerate(tr.stages):
+            rel = f"{tr.name}/stage_{st.index:03d}.npz"
+            path = out / rel
+            stage_config = dict(config, center=center.tolist(), scale=scale, t=st.t, index=st.index,
+                                source_sha256=_sha256(st.path))
+            sha, stale = None, False
+            if path.is_file():
+                try:
+                    arrays = _read_sample(path, known.get(rel))
+                    if json.loads(str(arrays["config"])) == stage_config:
+                        sha = known.get(rel) or _sha256(path)
+                    else:
+                        stale = True
+                except ValueError as exc:  # DatasetError, or an unparsable config string
+                    warnings.warn(f"rebuilding: {exc}", stacklevel=2)
+                    stale = True
+            if sha is None:
+                mesh = tr.load_stage(pos)
+                mesh = mesh.with_vertices((mesh.vertices.astype(np.float64) - center) * scale)
+                rng = np.random.default_rng([int(seed), zlib.crc32(tr.name.encode()), st.index])
+                arrays = _sample_stage(mesh, rng, num_surface=num_surface, num_uniform=num_uniform,
+                                       num_near=num_near, noise=noise, truncation=truncation, device=dev)
+                arrays["t"] = np.float32(st.t)
+                arrays["config"] = np.array(json.dumps(stage_config))
+                sha = _write_sample(path, arrays)
+                counts["rebuilt" if stale else "built"] += 1
+            else:
+                counts["skipped"] += 1
+            entries.append({"index": st.index, "t": st.t, "file": rel, "sha256": sha})
+            bar.update(1)
+        shapes[tr.name] = {"name": tr.name, "trajectory": str(tr.root), "source": tr.source,
+                           "center": center.tolist(), "scale": scale, "truncation": float(truncation),
+                           "stages": entries}
+        _write_json(out / "index.json", {"format": DATASET_FORMAT, "config": config,
+                                          "shapes": [shapes[k] for k in sorted(shapes)]})
+    bar.close()
+    return {"index": str(out / "index.json"), "shapes": len(shapes), **counts}
+
+
+def verify_dataset(root: str | os.PathLike) -> int:
+    """Check every sample file of a dataset (checksum, load, keys, shapes).
+
+    Returns:
+        The number of files checked.
+
+    Raises:
+        DatasetError: listing every bad file and why.
+    """
+    root = Path(root)
+    index = _read_index(root)
+    problems, n = [], 0
+    for shape in index["shapes"]:
+        for st in shape["stages"]:
+            n += 1
+            try:
+                _read_sample(root / st["file"], st.get("sha256"))
+            except DatasetError as exc:
+                problems.append(str(exc))
+    if problems:
+        raise DatasetError(f"{len(problems)} of {n} sample file(s) are unusable:\n  " + "\n  ".join(problems))
+    return n
+
+
+class TrajectoryDataset(torch.utils.data.Dataset):
+    """Stages of a built dataset as training items with random point subsets.
+
+    Item ``i`` is a dict of tensors: ``surface`` (num_surface, 6) float32 xyz + normal, ``queries``
+    (num_queries, 3) float32, ``tsdf`` (num_queries,) float32, ``near`` (num_queries,) bool, ``t`` ()
+    float32, ``shape_id`` () int64 (position of the shape in :attr:`shape_names`, the same for every
+    split) and ``stage`` () int64. The subsets come from a generator seeded by ``(seed, epoch, i)``,
+    so items are reproducible, differ across epochs (:meth:`set_epoch`) and are safe in DataLoader
+    workers. Every file is checked against its SHA-256 in ``index.json`` when read; a corrupt one
+    raises :class:`DatasetError` and is never returned.
+
+    Args:
+        root: dataset directory (with ``index.json``).
+        num_surface: surface points per item.
+        num_queries: query points per item; ``round(near_fraction * num_queries)`` of them near the surface.
+        split: ``"train"`` (all shapes except ``holdout``), ``"test"`` (only ``holdout``) or ``"all"``.
+        holdout: shape names held out for generalization tests.
+        seed: base seed of the subsets.
+        near_fraction: share of near-surface queries per item.
+        cache: keep checked arrays in memory after the first read.
+    """
+
+    def __init__(self, root: str | os.PathLike, *, num_surface: int = 2048, num_queries: int = 4096,
+                 split: str = "train", holdout: Sequence[str] = (), seed: int = 0, near_fraction: float = 0.5,
+                 cache: bool = False):
+        self.root = Path(root)
+        index = _read_index(self.root)
+        if split not in ("train", "test", "all"):
+            raise ValueError(f"TrajectoryDataset: split must be 'train', 'test' or 'all', got {split!r}")
+        if num_surface < 1 or num_queries < 1 or not 0.0 <= near_fraction <= 1.0:
+            raise ValueError("TrajectoryDataset: num_surface and num_queries must be >= 1, near_fraction in [0, 1]")
+        holdout = (holdout,) if isinstance(holdout, str) else tuple(holdout)
+        self.shapes = index["shapes"]
+        self.shape_names = [s["name"] for s in self.shapes]
+        unknown = sorted(set(holdout) - set(self.shape_names))
+        if unknown:
+            raise ValueError(f"TrajectoryDataset: holdout names not in {self.root / 'index.json'}: {unknown}")
+        keep = {"train": lambda n: n not in holdout, "test": lambda n: n in holdout, "all": lambda n: True}[split]
+        self.items = [(sid, st) for sid, s in enumerate(self.shapes) if keep(s["name"]) for st in s["stages"]]
+        if not self.items:
+            raise ValueError(f"TrajectoryDataset: split {split!r} of {self.root} is empty (holdout={list(holdout)})")
+        self.num_surface, self.num_queries = int(num_surface), int(num_queries)
+        self.num_near = int(round(near_fraction * num_queries))
+        self.seed, self.epoch = int(seed), 0
+        self._cache: dict[int, dict[str, np.ndarray]] | None = {} if cache else None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def item_ids(self) -> list[tuple[int, int]]:
+        """``(shape_id, stage)`` of every item, without reading any file."""
+        return [(sid, int(st["index"])) for sid, st in self.items]
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw new subsets: items depend on ``(seed, epoch, i)``."""
+        self.epoch = int(epoch)
+
+    def _arrays(self, i: int) -> dict[str, np.ndarray]:
+        if self._cache is not None and i in self._cache:
+            return self._cache[i]
+        st = self.items[i][1]
+        try:
+            arrays = _read_sample(self.root / st["file"], st.get("sha256"))
+        except DatasetError as exc:
+            raise DatasetError(f"{exc}; re-run `vnc-warp dataset` on its trajectory to rebuild it") from None
+        if self._cache is not None:
+            self._cache[i] = arrays
+        return arrays
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        sid, st = self.items[i]
+        a = self._arrays(i)
+        rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+        ns = a["surface"].shape[0]
+        s_idx = rng.choice(ns, self.num_surface, replace=ns < self.num_surface)
+        near_pool, far_pool = np.flatnonzero(a["near"]), np.flatnonzero(~a["near"])
+        n_near = 0 if near_pool.size == 0 else self.num_queries if far_pool.size == 0 else self.num_near
+        n_far = self.num_queries - n_near
+        q_idx = np.concatenate([rng.choice(far_pool, n_far, replace=far_pool.size < n_far),
+                                rng.choice(near_pool, n_near, replace=near_pool.size < n_near)])
+        return {
+            "surface": torch.from_numpy(np.ascontiguousarray(a["surface"][s_idx])),
+            "queries": torch.from_numpy(np.ascontiguousarray(a["queries"][q_idx])),
+            "tsdf": torch.from_numpy(np.ascontiguousarray(a["tsdf"][q_idx])),
+            "near": torch.from_numpy(np.ascontiguousarray(a["near"][q_idx])),
+            "t": torch.tensor(float(st["t"]), dtype=torch.float32),
+            "shape_id": torch.tensor(sid, dtype=torch.int64),
+            "stage": torch.tensor(int(st["index"]), dtype=torch.int64),
+        }

@@ -1,0 +1,205 @@
+"""Inference: encode a mesh, decode the SDF at time t on a grid in chunks, extract a :class:`~vnc_warp.Mesh`.
+
+The input is normalised with the rule of the training data (``x_norm = (x - center) * scale``,
+bounding-box centre and ``scale = 1.8 / max extent``, see :func:`vnc_warp.training.data.normalization`);
+decoded meshes are mapped back to the input's units.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
+
+from .checkpoint import load_model
+from .train import resolve_device
+
+__all__ = ["surface_condition", "decode_sdf_grid", "extract_mesh", "decode_mesh", "generate"]
+
+
+def _model_device(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+def surface_condition(mesh: Mesh, *, num_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Encoder input of a mesh: normalised surface points and unit normals.
+
+    Args:
+        mesh: the detailed input (t = 1), any units.
+        num_points: surface samples (area-weighted).
+        seed: sampling seed.
+
+    Returns:
+        ``(surface, center, scale)``: (num_points, 6) float32 normalised xyz + normal, (3,) float64, float.
+    """
+    from .data import normalization, sample_surface
+
+    center, scale = normalization(mesh)
+    points, normals = sample_surface(mesh, num_points, np.random.default_rng(seed))
+    surface = np.concatenate([(points - center) * scale, normals], axis=1).astype(np.float32)
+    return surface, center, scale
+
+
+@torch.no_grad()
+def decode_sdf_grid(model: torch.nn.Module, latents: torch.Tensor, *, resolution: int = 128, bound: float = 1.0,
+                    chunk_size: int | None = None) -> np.ndarray:
+    """SDF of one latent set on the regular grid ``linspace(-bound, bound, resolution)^3``.
+
+    The latent transformer runs once; the query decoder runs over the grid in chunks.
+
+    Args:
+        model: a VecSet model (:mod:`vnc_warp.training.model`).
+        latents: (M, C) or (1, M, C) latents.
+        resolution: samples per axis.
+        bound: half-width of the grid, normalised units.
+        chunk_size: queries per decoder call (default: the model's).
+
+    Returns:
+        (resolution, resolution, resolution) float32 SDF, indexed [x, y, z].
+    """
+    if resolution < 2:
+        raise ValueError(f"decode_sdf_grid: resolution must be >= 2, got {resolution}")
+    device = _model_device(model)
+    z = latents.to(device).float()
+    if z.ndim == 2:
+        z = z.unsqueeze(0)
+    if z.ndim != 3 or z.shape[0] != 1:
+        raise ValueError(f"decode_sdf_grid: latents must be (M, C) or (1, M, C), got {tuple(latents.shape)}")
+    tokens = model.latent_tokens(z)
+    axis = torch.linspace(-bound, bound, resolution, device=device)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(1, -1, 3)
+    sdf = model.decoder.queries(tokens, grid, chunk_size=chunk_size)
+    return sdf.reshape(resolution, resolution, resolution).float().cpu().numpy()
+
+
+def extract_mesh(sdf: np.ndarray, *, bound: float = 1.0, level: float = 0.0, center: Sequence[float] | None = None,
+                 scale: float | None = None, name: str = "decoded") -> Mesh:
+    """Marching cubes (scikit-image) on a grid SDF, negative inside, with outward winding.
+
+    Args:
+        sdf: (R, R, R) samples on ``linspace(-bound, bound, R)^3``, indexed [x, y, z].
+        bound: half-width of the grid.
+        level: iso-value.
+        center, scale: undo the normalisation, ``x = x_norm / scale + center`` (both or neither).
+        name: mesh name.
+
+    Raises:
+        ValueError: the grid has no crossing of ``level``.
+    """
+    from skimage.measure import marching_cubes
+    import trimesh
+
+    sdf = np.asarray(sdf, dtype=np.float32)
+    lo, hi = float(sdf.min()), float(sdf.max())
+    if not lo < level < hi:
+        raise ValueError(f"{name}: the decoded SDF has no {level} crossing on the grid (min {lo:.4g}, max {hi:.4g}); "
+                         "nothing to mesh")
+    step = 2.0 * bound / (sdf.shape[0] - 1)
+    # 'ascent' winds faces so that normals point toward increasing values: outward for an SDF.
+    verts, faces, _, _ = marching_cubes(sdf, level=level, spacing=(step, step, step), gradient_direction="ascent")
+    verts = verts - bound
+    if (center is None) != (scale is None):
+        raise ValueError("extract_mesh: give both center and scale, or neither")
+    if scale is not None:
+        verts = verts / scale + np.asarray(center, dtype=np.float64)
+    tm = trimesh.Trimesh(verts, faces, process=True)
+    tm.update_faces(tm.nondegenerate_faces())
+    tm.remove_unreferenced_vertices()
+    try:
+        return from_arrays(tm.vertices, tm.faces, name=name)
+    except MeshError as exc:
+        raise MeshError(f"marching cubes output is not a usable mesh: {exc}") from exc
+
+
+@torch.no_grad()
+def decode_mesh(model: torch.nn.Module, latents_or_cond: torch.Tensor | np.ndarray, t: float | None = None, *,
+                resolution: int = 128, bound: float = 1.0, chunk_size: int | None = None,
+                center: Sequence[float] | None = None, scale: float | None = None, name: str = "decoded") -> Mesh:
+    """Decode a mesh from latents, or from a surface condition at time ``t``.
+
+    Args:
+        model: a VecSet model in eval mode.
+        latents_or_cond: with ``t=None``, latents (M, C) or (1, M, C) from ``model.encode``; with ``t``,
+            the encoder input (N, 6) or (1, N, 6): normalised xyz + unit normal of the detailed shape
+            (see :func:`surface_condition`), encoded at ``t`` with the posterior mean.
+        t: normalised evolution time in [0, 1] (Eq. (7)); ignored by a plain VAE.
+        resolution, bound, chunk_size: see :func:`decode_sdf_grid`.
+        center, scale: undo the normalisation (see :func:`extract_mesh`).
+        name: mesh name.
+
+    Returns:
+        The zero level set as a :class:`~vnc_warp.Mesh`.
+    """
+    device = _model_device(model)
+    x = torch.as_tensor(latents_or_cond, dtype=torch.float32, device=device)
+    if t is None:
+        latents = x
+    else:
+        if not 0.0 <= float(t) <= 1.0:
+            raise ValueError(f"decode_mesh: t must be in [0, 1], got {t}")
+        surface = x.unsqueeze(0) if x.ndim == 2 else x
+        if surface.ndim != 3 or surface.shape[0] != 1 or surface.shape[-1] != 6:
+            raise ValueError(f"decode_mesh: with t, the condition must be an (N, 6) surface sample, "
+                             f"got {tuple(x.shape)}")
+        latents, _ = model.encode(surface, torch.tensor([float(t)], device=device), sample=False)
+    sdf = decode_sdf_grid(model, latents, resolution=resolution, bound=bound, chunk_size=chunk_size)
+    return extract_mesh(sdf, bound=bound, center=center, scale=scale, name=name)
+
+
+def generate(checkpoint: str | os.PathLike, mesh: str | os.PathLike | Mesh, times: Sequence[float],
+             out_dir: str | os.PathLike, *, resolution: int = 128, device: str | torch.device | None = None,
+             num_surface: int | None = None, seed: int = 0, file_format: str = "ply") -> dict[str, Any]:
+    """Predict the shape of ``mesh`` at each time in ``times`` and write one mesh per time plus ``generate.json``.
+
+    Args:
+        checkpoint: a training checkpoint (or a run folder with ``checkpoints/last.pt``).
+        mesh: the detailed input (path or :class:`~vnc_warp.Mesh`), any units.
+        times: normalised times in [0, 1].
+        out_dir: output folder (created).
+        resolution: grid samples per axis for marching cubes.
+        device: torch device (None: CUDA when present).
+        num_surface: encoder surface samples (default: the checkpoint's ``data.num_surface``).
+        seed: surface sampling seed.
+        file_format: mesh file extension (``ply``, ``obj``, ...).
+
+    Returns:
+        The content of ``generate.json``: inputs, normalisation, and per time the file written (or
+        the reason none was, e.g. an empty level set) with vertex and face counts.
+    """
+    times = [float(t) for t in times]
+    bad = [t for t in times if not 0.0 <= t <= 1.0]
+    if not times or bad:
+        raise ValueError(f"times must be a non-empty list of values in [0, 1], got {times}")
+    model, config = load_model(checkpoint, device=resolve_device(device))
+    src = load_mesh(mesh)
+    n = num_surface or config.data.num_surface
+    surface, center, scale = surface_condition(src, num_points=n, seed=seed)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = Path(src.name).stem or "mesh"
+    entries = []
+    for t in times:
+        name = f"{stem}_t{t:.3f}"
+        entry: dict[str, Any] = {"t": t}
+        try:
+            result = decode_mesh(model, surface, t, resolution=resolution, center=center, scale=scale, name=name)
+        except (ValueError, MeshError) as exc:
+            entry.update(file=None, error=str(exc))
+        else:
+            path = out / f"{name}.{file_format}"
+            result.save(path)
+            entry.update(file=path.name, vertices=result.num_vertices, faces=result.num_faces,
+                         watertight=result.is_watertight)
+        entries.append(entry)
+    report = {"checkpoint": str(checkpoint), "input": str(mesh) if not isinstance(mesh, Mesh) else mesh.name,
+              "model_kind": config.model.kind, "time_conditioned": bool(model.time_conditioned),
+              "center": [float(c) for c in center], "scale": float(scale), "resolution": resolution,
+              "num_surface": n, "seed": seed, "meshes": entries}
+    (out / "generate.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report

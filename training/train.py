@@ -1,0 +1,393 @@
+"""Training loop of the C-VAE (Sec. 3.3) and the plain VecSet VAE.
+
+One process or many: launched with ``torchrun`` (``WORLD_SIZE`` > 1 in the environment), the loop
+joins the process group (NCCL on GPUs, gloo on CPU), wraps the model in DistributedDataParallel and
+shards the data with a DistributedSampler; rank 0 alone logs and writes checkpoints.
+
+Data: any map-style Dataset whose items are dicts with ``surface`` (Ns, 6), ``queries`` (Nq, 3),
+``tsdf`` (Nq,), ``near`` (Nq,) bool and ``t`` () (the contract of
+:class:`vnc_warp.training.data.TrajectoryDataset`; ``shape_id`` and ``stage`` too for
+``data.encoder_input="stage0"``). The C-VAEs encode the detailed stage-0 surface of a trajectory and
+decode the shape at the item's time t (:class:`Stage0Input`), as ``vnc-warp generate`` does; the
+plain VAE auto-encodes every item (``data.encoder_input="item"``).
+
+A run folder holds ``config.json``, ``log.jsonl`` (one row per ``log_every`` steps: step, epoch,
+loss terms, beta_kl, lr, grad_norm, samples/s) and ``checkpoints/last.pt``. ``resume=True`` continues
+from ``checkpoints/last.pt`` exactly: model, optimiser, scheduler, per-rank RNG states and the
+data-loader position are restored, so the losses equal those of an uninterrupted run (given items
+that are a deterministic function of their index, or ``num_workers=0``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import random
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data.distributed import DistributedSampler
+from tqdm.auto import tqdm
+
+from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, unwrap
+from .config import TrainConfig
+from .losses import cvae_loss, kl_weight_at, select_eikonal_queries
+from .model import build_model
+
+__all__ = ["train", "open_dataset", "Stage0Input", "lr_factor", "resolve_device", "REQUIRED_KEYS"]
+
+REQUIRED_KEYS = ("surface", "queries", "tsdf", "near", "t")
+
+
+def resolve_device(device: str | torch.device | None = None, *, local_rank: int | None = None) -> torch.device:
+    """A torch device: None picks CUDA when present; ``"cuda"`` becomes ``cuda:<local_rank>`` under torchrun.
+
+    Raises:
+        ValueError: malformed name, or CUDA requested where there is none.
+    """
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ValueError(f"unknown device {device!r}: {exc}") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {device!r} requested but CUDA is not available to torch")
+        if dev.index is None:
+            dev = torch.device("cuda", local_rank or 0)
+    return dev
+
+
+class Stage0Input(Dataset):
+    """The items of ``base`` with ``surface`` taken from the same shape's stage 0 (t = 1).
+
+    The C-VAE encodes the detailed input and decodes the shape at time t (Sec. 3.3, Fig. 9b), so
+    the encoder input of every stage is its trajectory's stage-0 surface. ``(shape_id, stage)`` of the
+    items come from ``base.item_ids()`` when it exists, otherwise from reading every item once.
+    """
+
+    def __init__(self, base: Dataset) -> None:
+        self.base = base
+        if hasattr(base, "item_ids"):
+            ids = [(int(s), int(st)) for s, st in base.item_ids()]
+        else:
+            ids = [(int(it["shape_id"]), int(it["stage"])) for it in (base[i] for i in range(len(base)))]
+        stage0 = {sid: i for i, (sid, st) in enumerate(ids) if st == 0}
+        missing = sorted({sid for sid, _ in ids} - set(stage0))
+        if missing:
+            raise ValueError(f"shape id(s) {missing[:5]} have no stage-0 item, the encoder input of "
+                             "data.encoder_input='stage0'")
+        self.source = [stage0[sid] for sid, _ in ids]
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def set_epoch(self, epoch: int) -> None:
+        if hasattr(self.base, "set_epoch"):
+            self.base.set_epoch(epoch)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        item = dict(self.base[i])
+        if self.source[i] != i:
+            item["surface"] = self.base[self.source[i]]["surface"]
+        return item
+
+
+def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, split: str = "train") -> Dataset:
+    """The training dataset: ``data`` itself when it is a Dataset, else a ``TrajectoryDataset`` over
+    the folder ``data``; wrapped in :class:`Stage0Input` when ``config.data.encoder_input == "stage0"``.
+
+    Raises:
+        FileNotFoundError: the folder or its ``index.json`` is missing.
+    """
+    if isinstance(data, Dataset):
+        dataset = data
+    else:
+        root = Path(data)
+        if not root.is_dir():
+            raise FileNotFoundError(f"data folder not found: {root}")
+        if not (root / "index.json").is_file():
+            raise FileNotFoundError(f"{root}: no index.json, so not a trajectory dataset folder "
+                                    "(build one with `vnc-warp dataset`)")
+        from .data import TrajectoryDataset
+
+        dataset = TrajectoryDataset(root, num_surface=config.data.num_surface, num_queries=config.data.num_queries,
+                                    split=split, seed=config.seed)
+    return Stage0Input(dataset) if config.data.encoder_input == "stage0" else dataset
+
+
+def lr_factor(step: int, *, warmup_steps: int, total_steps: int, min_lr_ratio: float) -> float:
+    """Learning-rate multiplier after ``step`` optimiser steps: linear warm-up, then cosine to ``min_lr_ratio``."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    progress = min((step - warmup_steps) / max(total_steps - warmup_steps, 1), 1.0)
+    return min_lr_ratio + (1.0 - min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+@dataclass
+class _Dist:
+    rank: int
+    world_size: int
+    local_rank: int
+    device: torch.device
+    owns_group: bool
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    def barrier(self) -> None:
+        if self.world_size > 1:
+            dist.barrier()
+
+
+def _setup_distributed(device: str | torch.device | None) -> _Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", str(rank)))
+    dev = resolve_device(device, local_rank=local if world > 1 else None)
+    owns = False
+    if world > 1:
+        if dev.type == "cuda":
+            torch.cuda.set_device(dev)
+        if not dist.is_initialized():
+            dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo")
+            owns = True
+    return _Dist(rank, world, local, dev, owns)
+
+
+class _SkipSampler(Sampler):
+    """The indices of ``base`` after the first ``skip`` (resuming inside an epoch)."""
+
+    def __init__(self, base: Sampler, skip: int) -> None:
+        self.base = base
+        self.skip = skip
+
+    def __iter__(self) -> Iterator[int]:
+        return itertools.islice(iter(self.base), self.skip, None)
+
+    def __len__(self) -> int:
+        return max(len(self.base) - self.skip, 0)
+
+
+def _seed_all(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def _check_batch(batch: Any) -> None:
+    if not isinstance(batch, dict):
+        raise ValueError(f"dataset items must be dicts with keys {REQUIRED_KEYS}, got {type(batch).__name__}")
+    missing = [k for k in REQUIRED_KEYS if k not in batch]
+    if missing:
+        raise ValueError(f"dataset items lack key(s) {missing}; required: {REQUIRED_KEYS}")
+    b, nq = batch["queries"].shape[:2]
+    expected = {"surface": (b, None, 6), "queries": (b, nq, 3), "tsdf": (b, nq), "near": (b, nq), "t": (b,)}
+    for key, shape in expected.items():
+        got = tuple(batch[key].shape)
+        if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+            raise ValueError(f"dataset key {key!r}: batched shape {got}, expected {shape} (None: any)")
+    if batch["near"].dtype != torch.bool:
+        raise ValueError(f"dataset key 'near' must be bool, got {batch['near'].dtype}")
+
+
+class _Log:
+    """Append-only JSONL log on rank 0; on resume, rows after the checkpoint's step are dropped."""
+
+    def __init__(self, path: Path, *, keep_until: int | None) -> None:
+        self.path = path
+        if keep_until is not None and path.is_file():
+            rows = [line for line in path.read_text().splitlines() if line.strip()]
+            kept = [r for r in rows if json.loads(r).get("step", 0) <= keep_until]
+            path.write_text("".join(r + "\n" for r in kept))
+        elif keep_until is None:
+            path.write_text("")
+
+    def write(self, row: dict[str, Any]) -> None:
+        with self.path.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+def _optimizer(model: torch.nn.Module, config: TrainConfig) -> tuple[torch.optim.Optimizer, Any, list]:
+    o = config.optim
+    params = [p for p in model.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in params if p.ndim >= 2], "weight_decay": o.weight_decay},
+              {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0}]
+    opt = torch.optim.AdamW(groups, lr=o.lr, betas=o.betas, eps=o.eps)
+
+    def schedule(step: int) -> float:
+        return lr_factor(step, warmup_steps=o.warmup_steps, total_steps=o.total_steps, min_lr_ratio=o.min_lr_ratio)
+
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, schedule), params
+
+
+def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: str | os.PathLike,
+          device: str | torch.device | None = None, resume: bool = False, stop_at: int | None = None,
+          progress: bool = True) -> dict[str, Any]:
+    """Train the model ``config.model`` describes.
+
+    Args:
+        config: the run configuration (``optim.total_steps`` sets the schedule and the default end).
+        data: a dataset folder (read with ``TrajectoryDataset``) or any Dataset with the contract's keys.
+        out_dir: run folder (created).
+        device: None (CUDA when present), ``"cpu"``, ``"cuda"``, ``"cuda:1"``...
+        resume: continue from ``out_dir/checkpoints/last.pt``.
+        stop_at: stop after this step (the schedule still follows ``total_steps``); default ``total_steps``.
+        progress: show a tqdm bar on rank 0.
+
+    Returns:
+        Summary of this process: ``rank``, ``world_size``, ``device``, ``start_step``, ``step``,
+        ``checkpoint`` (path), ``last`` (loss terms of the last logged window), ``samples_per_s``
+        (mean over the run, all ranks).
+
+    Raises:
+        FileNotFoundError: missing data folder, or ``resume`` without a checkpoint.
+        CheckpointError: unreadable checkpoint.
+        ValueError: invalid config, dataset items that break the contract, a dataset smaller than one
+            global batch, or a checkpoint whose model config differs from ``config.model``.
+    """
+    config.validate()
+    ctx = _setup_distributed(device)
+    try:
+        return _run(config, data, Path(out_dir), ctx, resume=resume, stop_at=stop_at, progress=progress)
+    finally:
+        if ctx.owns_group:
+            dist.destroy_process_group()
+
+
+def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool, stop_at: int | None,
+         progress: bool) -> dict[str, Any]:
+    ckpt_path = out / "checkpoints" / "last.pt"
+    if resume and not ckpt_path.is_file():
+        raise FileNotFoundError(f"resume: no checkpoint at {ckpt_path}")
+    dataset = open_dataset(data, config)
+    bs = config.data.batch_size
+    if len(dataset) < bs * ctx.world_size:
+        raise ValueError(f"dataset has {len(dataset)} items, fewer than one global batch "
+                         f"(batch_size {bs} x {ctx.world_size} processes)")
+    if ctx.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+
+    _seed_all(config.seed)  # identical initial weights on every rank
+    model = build_model(config.model).to(ctx.device)
+    opt, sched, params = _optimizer(model, config)
+    step = epoch = batch_in_epoch = 0
+    if resume:
+        state = load_checkpoint(ckpt_path)
+        if state["config"]["model"] != config.to_dict()["model"]:
+            raise ValueError(f"resume: model config of {ckpt_path} differs from the given config")
+        unwrap(model).load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        step, epoch, batch_in_epoch = state["step"], state["epoch"], state["batch_in_epoch"]
+        rngs = state["rng"]
+        if rngs is not None and len(rngs) == ctx.world_size:
+            set_rng_state(rngs[ctx.rank])
+        else:
+            warnings.warn(f"resume: checkpoint has RNG states for {len(rngs or [])} process(es), this run has "
+                          f"{ctx.world_size}; re-seeding, so the continuation (random draws, data order) is not "
+                          "bit-identical", stacklevel=2)
+            _seed_all(config.seed + 1000 * ctx.rank + step)
+    else:
+        _seed_all(config.seed + ctx.rank)
+    start_step = step
+    if ctx.world_size > 1:
+        model = DistributedDataParallel(model, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None)
+    model.train()
+
+    sampler = DistributedSampler(dataset, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True,
+                                 seed=config.seed, drop_last=True)
+    loader_gen = torch.Generator()
+
+    def loader_for(ep: int, skip_batches: int) -> DataLoader:
+        sampler.set_epoch(ep)
+        if hasattr(dataset, "set_epoch"):
+            dataset.set_epoch(ep)
+        loader_gen.manual_seed(config.seed * 1_000_003 + ep)  # worker seeds depend on the epoch only
+        return DataLoader(dataset, batch_size=bs, sampler=_SkipSampler(sampler, skip_batches * bs),
+                          num_workers=config.data.num_workers, drop_last=True, generator=loader_gen,
+                          pin_memory=ctx.device.type == "cuda")
+
+    end = config.optim.total_steps if stop_at is None else stop_at
+    amp = config.bf16 and ctx.device.type == "cuda"
+    eik = config.loss.eikonal_weight > 0
+    log = _Log(out / "log.jsonl", keep_until=step if resume else None) if ctx.is_main else None
+    bar = tqdm(total=end, initial=step, disable=not (progress and ctx.is_main), desc=f"train {config.name}",
+               dynamic_ncols=True)
+    window = torch.zeros(5, dtype=torch.float64, device=ctx.device)  # loss, tsdf, kl, eik, grad_norm sums
+    window_steps, window_t0, run_t0 = 0, time.perf_counter(), time.perf_counter()
+    last: dict[str, float] = {}
+    checked = False
+    while step < end:
+        for batch in loader_for(epoch, batch_in_epoch):
+            if not checked:
+                _check_batch(batch)
+                checked = True
+            b = {k: batch[k].to(ctx.device, non_blocking=True) for k in REQUIRED_KEYS}
+            eik_q, eik_near = (select_eikonal_queries(b["queries"], b["near"], config.loss.eikonal_queries)
+                               if eik else (None, None))
+            with torch.autocast(device_type=ctx.device.type, dtype=torch.bfloat16, enabled=amp):
+                out = model(b["surface"], b["queries"], b["t"], eikonal_queries=eik_q)
+            terms = cvae_loss(out, b, config.loss, step=step, eikonal_queries=eik_q, eikonal_near=eik_near)
+            opt.zero_grad(set_to_none=True)
+            terms["loss"].backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
+            lr = sched.get_last_lr()[0]
+            opt.step()
+            sched.step()
+            step += 1
+            batch_in_epoch += 1
+            window += torch.stack([terms["loss"].detach(), terms["tsdf"].detach(), terms["kl"].detach(),
+                                   terms["eik"].detach(), grad_norm.detach()]).double()
+            window_steps += 1
+            bar.update(1)
+            if step % config.log_every == 0 or step == end:
+                if ctx.world_size > 1:
+                    dist.all_reduce(window)
+                means = (window / (window_steps * ctx.world_size)).tolist()
+                elapsed = time.perf_counter() - window_t0
+                last = dict(zip(("loss", "tsdf", "kl", "eik", "grad_norm"), means))
+                row = {"step": step, "epoch": epoch, **last, "beta_kl": kl_weight_at(step - 1, config.loss), "lr": lr,
+                       "samples_per_s": window_steps * bs * ctx.world_size / max(elapsed, 1e-9)}
+                if log is not None:
+                    log.write(row)
+                    bar.set_postfix(loss=f"{last['loss']:.4g}")
+                window.zero_()
+                window_steps, window_t0 = 0, time.perf_counter()
+            if step % config.ckpt_every == 0 or step == end:
+                _save(ckpt_path, model, config, step, opt, sched, epoch, batch_in_epoch, ctx)
+            if step >= end:
+                break
+        else:
+            epoch += 1
+            batch_in_epoch = 0
+    bar.close()
+    total_time = time.perf_counter() - run_t0
+    return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device), "start_step": start_step,
+            "step": step, "checkpoint": str(ckpt_path), "last": last,
+            "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9)}
+
+
+def _save(path: Path, model: torch.nn.Module, config: TrainConfig, step: int, opt: torch.optim.Optimizer,
+          sched: Any, epoch: int, batch_in_epoch: int, ctx: _Dist) -> None:
+    states = [rng_state()]
+    if ctx.world_size > 1:
+        states = [None] * ctx.world_size
+        dist.all_gather_object(states, rng_state())
+    if ctx.is_main:
+        save_checkpoint(path, model=model, config=config, step=step, optimizer=opt, scheduler=sched, epoch=epoch,
+                        batch_in_epoch=batch_in_epoch, world_size=ctx.world_size, rng=states)
+    ctx.barrier()
