@@ -32,7 +32,7 @@ def test_torch_gradient_matches_dense_float64(per_vertex, device):
     tau = 0.7 * (np.random.default_rng(3).uniform(0.7, 1.3, V) if per_vertex else 1.0)
     wH, wn = _objective_weights(V)
     v = torch.tensor(mesh.vertices, device=device, requires_grad=True)
-    H, n = vnc_soft(v, mesh, torch.as_tensor(tau, dtype=torch.float32) if per_vertex else tau)
+    H, n = vnc_soft(v, mesh, torch.as_tensor(tau, dtype=torch.float32, device=device) if per_vertex else tau)
     assert H.device == v.device and H.dtype == torch.float32 and n.shape == (V, 3)
     ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
     v64 = torch.tensor(mesh.vertices, dtype=torch.float64, requires_grad=True)
