@@ -22,16 +22,19 @@ from vnc_warp.sdf import choose_band_factor, sample_grid, sign_flag, warp_mesh
 
 __all__ = ["sdf_remesh", "validate_surface"]
 
-# Marching-cubes triangles per (area / spacing^2) on smooth surfaces (skimage's Lewiner MC and
-# Warp's MC alike, measured on spot, armadillo and a torus: 2.80-2.85).
+# Marching-cubes triangles per (area / spacing^2) (2.80-2.95 measured on spot, armadillo and the open
+# bunny; skimage's Lewiner MC and Warp's MC give the same count).
 _MC_FACES_PER_AREA = 2.83
 # Marching cubes aims at this many times the target face count before decimation.
 _OVERSAMPLE = 4.0
 # Grid cells across the thinnest parts kept by the automatic resolution ...
-_CELLS_ACROSS_THIN = 3.0
+_CELLS_ACROSS_THIN = 2.0
 # ... where "thinnest" is this area-weighted percentile of the inward thickness.
-_THIN_PERCENTILE = 5.0
+_THIN_PERCENTILE = 1.0
 _THICKNESS_SAMPLES = 4096
+# ... but at most this much finer than the face-count spacing: parts too thin for the target face
+# count would only be pinched into non-manifold fins by the decimation.
+_MAX_THIN_REFINE = 2.0
 # Bounds on the automatic resolution, in nodes along the longest bounding-box side.
 _MIN_NODES = 32
 _MAX_NODES = 384
@@ -47,7 +50,7 @@ _MIN_ABS_SDF = 1.0e-3
 # carefully, which avoids most pinched edges). Offsets are odd fractions of a cell so that flat,
 # axis-aligned faces (CAD parts, a mesh's bounding-box planes) never lie on grid nodes, where the
 # SDF is zero and marching cubes emits zero-area triangles.
-_GRIDS = (((0.31, 0.17, 0.43), 1.0), ((0.62, 0.84, 0.29), 1.0), ((0.77, 0.53, 0.61), 0.85))
+_GRIDS = (((0.31, 0.17, 0.43), 1.0), ((0.62, 0.84, 0.29), 1.0), ((0.77, 0.53, 0.61), 1.5))
 _AGGRESSIVENESS = (7.0, 5.0, 3.0)
 
 
@@ -60,31 +63,67 @@ def _pairs(p: np.ndarray, k: int = 3) -> str:
     return "; ".join(f"({int(a)}, {int(b)})" for a, b in p[:k]) + ("; ..." if len(p) > k else "")
 
 
-def _nonmanifold_vertices(f: np.ndarray, num_vertices: int) -> np.ndarray:
-    """Vertices whose faces form more than one fan, on a closed, edge-manifold, consistent mesh.
+def _corner_fans(f: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex and fan label of every corner (face ``i``, slot ``k`` is corner ``3 i + k``).
 
-    Corners of a vertex are linked across each edge at that vertex; a manifold vertex has exactly one
-    linked group of corners (its disk).
+    Corners of one vertex are linked across every edge at that vertex that is manifold and
+    consistently wound (exactly one half-edge each way); each linked group is one fan. A manifold
+    vertex of a closed mesh has exactly one fan (its disk).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    nf = f.shape[0]
+    nc = 3 * f.shape[0]
     a = f.reshape(-1).astype(np.int64)
     b = np.roll(f, -1, axis=1).reshape(-1).astype(np.int64)
     key = a * num_vertices + b
-    order = np.argsort(key)
-    twin = order[np.searchsorted(key, b * num_vertices + a, sorter=order)]
-    h = np.arange(3 * nf)
-    nxt = 3 * (h // 3) + (h + 1) % 3
-    # half-edge h = a -> b (its corner at a) and its twin t = b -> a: corner a of t's face is next(t)
-    rows = np.concatenate([h, nxt])
-    cols = np.concatenate([nxt[twin], twin])
-    graph = coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(3 * nf, 3 * nf))
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    rev_lo = np.searchsorted(sorted_key, b * num_vertices + a, "left")
+    rev_count = np.searchsorted(sorted_key, b * num_vertices + a, "right") - rev_lo
+    fwd_count = np.searchsorted(sorted_key, key, "right") - np.searchsorted(sorted_key, key, "left")
+    h = np.nonzero((rev_count == 1) & (fwd_count == 1))[0]
+    t = order[rev_lo[h]]
+    corner = np.arange(nc)
+    nxt = 3 * (corner // 3) + (corner + 1) % 3
+    # half-edge h = a -> b starts at corner a; its twin t = b -> a starts at b, and next(t) is at a
+    rows = np.concatenate([h, nxt[h]])
+    cols = np.concatenate([nxt[t], t])
+    graph = coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(nc, nc))
     _, label = connected_components(graph, directed=False)
-    fans = np.unique(a * (3 * nf) + label)
-    per_vertex = np.bincount(fans // (3 * nf), minlength=num_vertices)
-    return np.nonzero(per_vertex > 1)[0]
+    return a, label
+
+
+def _nonmanifold_vertices(f: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Vertices whose faces form more than one fan."""
+    a, label = _corner_fans(f, num_vertices)
+    fans = np.unique(a * f.size + label)
+    return np.nonzero(np.bincount(fans // f.size, minlength=num_vertices) > 1)[0]
+
+
+def _split_fans(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cut non-manifold edges and vertices: one vertex copy per fan.
+
+    Quadric decimation without a link-condition check can flatten a thin part onto a spine edge
+    (two sheets through one edge, four faces) or a point. Giving each sheet its own copy of those
+    vertices makes every edge two-faced and every vertex one disk; each copy moves 5% of the way to
+    its fan's centroid so that the sheets no longer share positions either. A part cut off
+    entirely becomes its own component.
+    """
+    a, label = _corner_fans(f, v.shape[0])
+    fan_of_corner = a * f.size + label
+    fans, copy = np.unique(fan_of_corner, return_inverse=True)
+    copy = copy.reshape(-1)
+    origin = fans // f.size
+    v2 = v[origin]
+    split = np.bincount(origin, minlength=v.shape[0])[origin] > 1
+    if split.any():
+        f2 = copy.reshape(-1, 3)
+        ring = v2[np.roll(f2, 1, axis=1)] + v2[np.roll(f2, -1, axis=1)]
+        total = np.stack([np.bincount(copy, ring.reshape(-1, 3)[:, i], minlength=fans.size) for i in range(3)], 1)
+        centroid = total / (2.0 * np.bincount(copy, minlength=fans.size)[:, None])
+        v2[split] += 0.05 * (centroid[split] - v2[split])
+    return v2, copy.reshape(-1, 3)
 
 
 def surface_problems(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
@@ -218,7 +257,8 @@ def auto_spacing(m: Mesh, target: int, wm: wp.Mesh, device) -> float:
     side = float((m.vertices.max(0) - m.vertices.min(0)).max())
     h_faces = np.sqrt(_MC_FACES_PER_AREA * m.area() / (_OVERSAMPLE * target))
     h_thin = _inward_thickness(m, wm, device) / _CELLS_ACROSS_THIN
-    return float(np.clip(min(h_faces, h_thin), side / (_MAX_NODES - 1), side / (_MIN_NODES - 1)))
+    h = max(min(h_faces, h_thin), h_faces / _MAX_THIN_REFINE)
+    return float(np.clip(h, side / (_MAX_NODES - 1), side / (_MIN_NODES - 1)))
 
 
 def _marching_cubes(grid: wp.array, origin: np.ndarray, spacing: float, method: str):
@@ -255,10 +295,46 @@ def _largest_component(v: np.ndarray, f: np.ndarray):
     return v[used], remap[f]
 
 
+def _drop_double_faces(f: np.ndarray) -> np.ndarray:
+    """Faces without the groups that share one vertex triple.
+
+    Quadric decimation can flatten a part thinner than its budget allows (a finger, a tube) into a
+    double-sided triangle: two faces on the same three vertices, which make their edges four-faced.
+    Without both, the part keeps a three-vertex waist and every edge has two faces again.
+    """
+    key = np.sort(f, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return f[counts[inverse.reshape(-1)] == 1]
+
+
 def _area_and_centroid(v: np.ndarray, f: np.ndarray) -> tuple[float, np.ndarray]:
     """Surface area and area-weighted centroid (3,)."""
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     return float(area.sum()), (area[:, None] * v[f].mean(1)).sum(0) / area.sum()
+
+
+def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name: str):
+    """Orient outward, scale to ``area`` (if given) and check a decimated surface.
+
+    Returns:
+        ``(mesh, None)`` when it is valid and within 2% of ``target`` faces, else ``(None, problem)``.
+    """
+    if abs(f.shape[0] - target) > _FACE_COUNT_TOLERANCE * target:
+        return None, f"{f.shape[0]} faces, not within {_FACE_COUNT_TOLERANCE:.0%} of {target}"
+    current, centroid = _area_and_centroid(v, f)
+    if not (current > 0.0 and np.isfinite(current)):
+        return None, f"surface area {current:.6g}"
+    if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0.0:
+        f = np.ascontiguousarray(f[:, ::-1])
+    if area is not None:
+        v = centroid + (v - centroid) * np.sqrt(area / current)
+    try:
+        mesh = from_arrays(v, f, name=name, merge=False)
+        # checked as stored (float32), so rounding cannot turn a valid face into a sliver afterwards
+        validate_surface(mesh, where="sdf_remesh")
+    except MeshError as exc:
+        return None, str(exc)
+    return mesh, None
 
 
 def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = None, device=None,
@@ -269,17 +345,21 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
     from the winding number, so an open scan still yields a closed surface), marching cubes, the
     largest connected component, quadric decimation (fast-simplification) to ``faces``, and, with
     ``keep_area``, a scale about the area centroid so the area equals the input's (Sec. 3.2 (3):
-    remeshing keeps face count and surface area). If the decimated surface fails
-    :func:`validate_surface` (decimation can pinch edges or leave slivers), it is decimated again less
-    aggressively, then the grid is shifted by a fraction of a cell and refined: at most three grids
-    and nine decimations before giving up.
+    remeshing keeps face count and surface area). Decimation can flatten parts too thin for the face
+    budget: double-sided triangles are removed, and if the surface fails :func:`validate_surface`,
+    edges and vertices pinched by the decimation are cut (one vertex copy per fan) and parts cut
+    off are dropped. If it still fails, it is decimated again less aggressively, then on
+    a grid shifted by a fraction of a cell, then on a shifted grid 1.5x coarser (where thin parts
+    that keep pinching merge or vanish): at most three grids and nine decimations before giving up.
 
     Automatic resolution (``resolution=None``): the grid spacing ``h`` is the smaller of
 
     * ``sqrt(2.83 * A / (4 * faces))``, with ``A`` the input area: marching cubes makes about
       ``2.83 * A / h^2`` triangles, so this aims at 4x the target before decimation;
-    * a third of the thinnest parts' thickness (the area-weighted 5th percentile of the distance
-      through the shape along inward face normals), so thin parts keep at least three cells across;
+    * half the thinnest parts' thickness (the area-weighted 1st percentile of the distance through
+      the shape along inward face normals, 4096 rays), so thin parts keep two cells across and do
+      not break up, but no less than half the first (at most 16x the target before decimation:
+      parts too thin for the face budget would only be pinched by the decimation);
 
     clamped to 32-384 nodes along the longest bounding-box side. If marching cubes still yields
     fewer than 1.2x ``faces``, the spacing is refined and the grid resampled.
@@ -357,24 +437,15 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
             continue
         for agg in _AGGRESSIVENESS:
             v, f = fast_simplification.simplify(v_mc, f_mc, target_count=target, agg=agg)
-            if abs(f.shape[0] - target) > _FACE_COUNT_TOLERANCE * target:
-                failures.append(f"decimation stopped at {f.shape[0]} faces (target {target}, agg {agg:g})")
-                continue
-            area, centroid = _area_and_centroid(v, f)
-            if not (area > 0.0 and np.isfinite(area)):
-                failures.append(f"decimated surface has area {area:.6g}")
-                continue
-            if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0.0:
-                f = np.ascontiguousarray(f[:, ::-1])
-            if keep_area:
-                v = centroid + (v - centroid) * np.sqrt(area_in / area)
-            try:
-                out = from_arrays(v, f, name=f"{m.name}:remeshed", merge=False)
-                # checked as stored (float32), so rounding cannot turn a valid face into a sliver afterwards
-                validate_surface(out, where="sdf_remesh")
-            except MeshError as exc:
-                failures.append(f"spacing {h:.4g}, agg {agg:g}: {exc}")
-                continue
-            return out
+            f = _drop_double_faces(f)
+            out, problem = _finish(v, f, target, area_in if keep_area else None, f"{m.name}:remeshed")
+            if problem is None:
+                return out
+            # cut what the decimation pinched, drop parts it cut off, and check once more
+            v, f = _largest_component(*_split_fans(v, f))
+            out, after_cut = _finish(v, f, target, area_in if keep_area else None, f"{m.name}:remeshed")
+            if after_cut is None:
+                return out
+            failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")
     raise MeshError(f"sdf_remesh: {m.name}: no valid surface after {len(failures)} attempt(s): "
                     + " | ".join(failures))
