@@ -27,3 +27,15 @@ def test_curvature_cli_bad_mesh_is_a_clear_error(tmp_path, capsys):
     """A missing mesh gives exit code 2 and a one-line error, not a traceback."""
     assert main(["curvature", str(tmp_path / "missing.obj"), "--out", str(tmp_path / "x")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_flow_cli_refuses_a_different_run_cleanly(tmp_path, capsys):
+    """`vnc-warp flow` into a folder holding another run's manifest exits 2 with a one-line error."""
+    from vnc_warp.shapes import random_shape
+
+    mesh = tmp_path / "shape.obj"
+    random_shape(1, subdivisions=2).save(mesh)
+    out = tmp_path / "traj"
+    assert main(["flow", str(mesh), "--stages", "1", "--out", str(out), "--device", "cpu", "--no-progress"]) == 0
+    assert main(["flow", str(mesh), "--stages", "2", "--out", str(out), "--device", "cpu", "--no-progress"]) == 2
+    assert "different run" in capsys.readouterr().err

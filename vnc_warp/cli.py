@@ -9,7 +9,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["curvature", "dataset", "evaluate", "train", "generate", "flow", "flow-batch"]
+COMMANDS = ["demo", "curvature", "dataset", "evaluate", "train", "generate", "flow", "flow-batch", "experiment"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,9 +27,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from .flow import FlowError
+
     try:
         return int(args._run(args) or 0)
-    except (FileNotFoundError, ValueError) as exc:  # MeshError is a ValueError
+    except (FileNotFoundError, ValueError, FlowError) as exc:  # MeshError is a ValueError
         print(f"vnc-warp {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
