@@ -8,6 +8,17 @@ Conventions shared by every kernel here:
   ``delta_j = +1`` on convex edges, so a sphere has positive curvature.
 * ``enormal[j]`` is the unit, area-weighted normal of the edge's two faces.
 * Gaussian weights are written with ``g = 1 / (2 sigma^2)`` per query so that ``g = 0`` means unweighted.
+
+Two ways to find the pairs within the cut-off live here. The ``bvh`` kernels walk a ``wp.Bvh`` per query
+thread. The ``cells`` kernels read *sources* (edges, or vertices in the backward pass) sorted by the
+row-major index of a uniform grid cell, so that the cells ``x0..x1`` of one ``(y, z)`` row are one
+contiguous range ``first[c(x0, y, z)] .. first[c(x1, y, z) + 1]``. *Queries* are taken in *groups* of
+consecutive threads (a CUDA warp on the GPU, one thread on the CPU) that share one box of cells, so the
+threads of a group walk the same sources in lockstep: their loads are uniform and their loop bounds
+equal (only the cut-off test differs per thread). A grid of one cell makes the same kernels an all-pairs (dense) traversal. The candidates of a
+group are split over ``ns`` threads per query (the leading launch dimension) for occupancy; each thread
+writes its partial sums to row ``s`` of a ``(ns, Q)`` array that a reduction kernel adds up in a fixed
+order, so results are deterministic.
 """
 
 import warp as wp
@@ -371,10 +382,14 @@ def scaled_copy(src: wp.array(dtype=float), s: float, dst: wp.array(dtype=float)
 
 
 @wp.kernel(enable_backward=False)
-def column_mean(H: wp.array2d(dtype=float), inv_count: float, mean: wp.array(dtype=float)):
-    """``mean[s] += H[s, k] / V``: the global mean curve of the VNC-Scale curves (``mean`` zeroed first)."""
-    s, k = wp.tid()
-    wp.atomic_add(mean, s, H[s, k] * inv_count)
+def column_mean(H: wp.array2d(dtype=float), stride: int, inv_count: float, mean: wp.array(dtype=float)):
+    """``mean[s] += sum_k H[s, k] / V`` over the columns ``k = c, c + stride, ...``: the global mean curve of the
+    VNC-Scale curves (``mean`` zeroed first; one atomic per thread rather than per element)."""
+    s, c = wp.tid()
+    acc = float(0.0)
+    for k in range(c, H.shape[1], stride):
+        acc += H[s, k]
+    wp.atomic_add(mean, s, acc * inv_count)
 
 
 @wp.kernel(enable_backward=False)
@@ -427,3 +442,830 @@ def adaptive_scale(
         acc += inc
         prev = cur
     out[k] = result
+
+
+# --- uniform-grid traversal ("cells" kernels): see the module docstring ---------------------------------------------
+
+vec16 = wp.types.vector(length=16, dtype=wp.float32)
+# (num, den, n.x, n.y, n.z): the sums of one query, updated in place so a rejected candidate costs no work
+vec5 = wp.types.vector(length=5, dtype=wp.float32)
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    const float4 v = __ldg(reinterpret_cast<const float4*>(a.data) + i);
+    return wp::vec4(v.x, v.y, v.z, v.w);
+#else
+    return a.data[i];
+#endif
+"""
+)
+def load4(a: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """``a[i]`` as one 128-bit read-only load on CUDA (a ``wp.vec4`` element is otherwise read as four 32-bit
+    loads). The traversal kernels read two or three such records per pair, the same for every thread of a
+    group: this quarters their load instructions. ``a`` must be a contiguous array of its own allocation."""
+    ...
+
+
+@wp.func
+def cell_coord(p: wp.vec3, origin: wp.vec3, inv_h: float, dims: wp.vec3i):
+    """Integer cell of ``p`` in a grid of ``dims`` cells of size ``1 / inv_h`` from ``origin``, clamped to the grid."""
+    q = (p - origin) * inv_h
+    return wp.vec3i(
+        int(wp.clamp(wp.floor(q[0]), 0.0, float(dims[0] - 1))),
+        int(wp.clamp(wp.floor(q[1]), 0.0, float(dims[1] - 1))),
+        int(wp.clamp(wp.floor(q[2]), 0.0, float(dims[2] - 1))),
+    )
+
+
+@wp.func
+def cell_index(c: wp.vec3i, dims: wp.vec3i):
+    """Row-major cell index, x fastest."""
+    return c[0] + dims[0] * (c[1] + dims[1] * c[2])
+
+
+@wp.func
+def box_rows(lo: wp.vec3i, hi: wp.vec3i):
+    """Number of ``(y, z)`` rows of the cell box ``lo..hi``."""
+    return (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
+
+
+@wp.func
+def row_span(row: int, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
+    """Sorted-source range ``[begin, end)`` of row ``row`` of the box: cells ``lo.x..hi.x`` at one ``(y, z)``."""
+    ny = hi[1] - lo[1] + 1
+    base = dims[0] * (lo[1] + row % ny + dims[1] * (lo[2] + row // ny))
+    return wp.vec2i(first[base + lo[0]], first[base + hi[0] + 1])
+
+
+@wp.func
+def split_window(total: int, s: int, ns: int):
+    """Candidates ``[begin, end)`` (counted over the rows of a group's box) handled by split ``s`` of ``ns``."""
+    return wp.vec2i((total * s) // ns, (total * (s + 1)) // ns)
+
+
+@wp.func
+def spread_bits(v: int):
+    """The low 10 bits of ``v`` moved to every third bit (Morton code)."""
+    x = v & 1023
+    x = (x | (x << 16)) & 50331903
+    x = (x | (x << 8)) & 50393103
+    x = (x | (x << 4)) & 51130563
+    x = (x | (x << 2)) & 153391689
+    return x
+
+
+@wp.func
+def chord(lo: float, oo: float, ll: float, inv_ll: float, L: float, r2: float):
+    """Length inside the ball ``|p - c| <= r`` of segment ``xa + s l``, ``s`` in [0, 1] (the ``l_j`` of Eq. (1)).
+
+    ``lo = l . (xa - c)``, ``oo = |xa - c|^2``, ``ll = |l|^2``, ``inv_ll = 1 / ll`` (0 for a degenerate edge),
+    ``L = |l|``.
+    """
+    disc = lo * lo - ll * (oo - r2)
+    out = float(0.0)
+    if disc > 0.0:
+        s = wp.sqrt(disc)
+        t1 = wp.max((-lo - s) * inv_ll, 0.0)
+        t2 = wp.min((-lo + s) * inv_ll, 1.0)
+        if t2 > t1:
+            out = (t2 - t1) * L
+    return out
+
+
+@wp.kernel(enable_backward=False)
+def point_stats(
+    x: wp.array(dtype=wp.vec3),
+    radius: wp.array(dtype=float),
+    length: wp.array(dtype=float),
+    stride: int,
+    stats: wp.array(dtype=float),
+):
+    """Bounding box of ``x``, radius statistics and the longest edge in one strided pass.
+
+    ``stats`` is preset to ``[+inf] * 3 + [-inf] * 4 + [0, 0, 0]`` and becomes
+    ``[lo.xyz, hi.xyz, max radius, sum radius, max length, sum length]``.
+    """
+    i = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(i, x.shape[0], stride):
+        lo = wp.min(lo, x[k])
+        hi = wp.max(hi, x[k])
+    rmax = float(-1.0e30)
+    rsum = float(0.0)
+    for k in range(i, radius.shape[0], stride):
+        rmax = wp.max(rmax, radius[k])
+        rsum += radius[k]
+    lmax = float(0.0)
+    lsum = float(0.0)
+    for k in range(i, length.shape[0], stride):
+        lmax = wp.max(lmax, length[k])
+        lsum += length[k]
+    for c in range(3):
+        wp.atomic_min(stats, c, lo[c])
+        wp.atomic_max(stats, 3 + c, hi[c])
+    wp.atomic_max(stats, 6, rmax)
+    wp.atomic_add(stats, 7, rsum)
+    wp.atomic_max(stats, 8, lmax)
+    wp.atomic_add(stats, 9, lsum)
+
+
+@wp.kernel(enable_backward=False)
+def cell_keys(
+    points: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    inv_h: float,
+    dims: wp.vec3i,
+    length: wp.array(dtype=float),
+    lmin: float,
+    lmax: float,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+):
+    """Sort keys of the sources: their row-major cell index (values: their own index).
+
+    When ``length`` is given, a source with ``length`` outside ``(lmin, lmax]`` gets the key ``num_cells``: it
+    sorts after every cell and no traversal of this grid sees it.
+    """
+    i = wp.tid()
+    key = cell_index(cell_coord(points[i], origin, inv_h, dims), dims)
+    if length.shape[0] > 0:
+        if length[i] <= lmin or length[i] > lmax:
+            key = dims[0] * dims[1] * dims[2]
+    keys[i] = key
+    values[i] = i
+
+
+@wp.kernel(enable_backward=False)
+def morton_keys(
+    points: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    scale: float,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+):
+    """Sort keys of the queries: 30-bit Morton codes on a 1024^3 grid (``scale = 1024 / largest extent``)."""
+    i = wp.tid()
+    q = (points[i] - origin) * scale
+    x = int(wp.clamp(q[0], 0.0, 1023.0))
+    y = int(wp.clamp(q[1], 0.0, 1023.0))
+    z = int(wp.clamp(q[2], 0.0, 1023.0))
+    keys[i] = spread_bits(x) | (spread_bits(y) << 1) | (spread_bits(z) << 2)
+    values[i] = i
+
+
+@wp.kernel(enable_backward=False)
+def iota(values: wp.array(dtype=int)):
+    """``values[i] = i``: the identity order."""
+    i = wp.tid()
+    values[i] = i
+
+
+@wp.kernel(enable_backward=False)
+def cell_count(keys: wp.array(dtype=int), counts: wp.array(dtype=int)):
+    """``counts[c]`` += number of sources with key ``c`` (``counts`` zeroed first); an exclusive scan of it gives
+    ``first``, the start of every cell in sorted order."""
+    i = wp.tid()
+    wp.atomic_add(counts, keys[i], 1)
+
+
+@wp.kernel(enable_backward=False)
+def group_boxes(
+    points: wp.array(dtype=wp.vec3),
+    order: wp.array(dtype=int),
+    radius: wp.array(dtype=float),
+    pad: float,
+    count: int,
+    size: int,
+    origin: wp.vec3,
+    inv_h: float,
+    dims: wp.vec3i,
+    first: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+):
+    """Per group of ``size`` consecutive sorted queries: the cells reached by any of its balls
+    ``|x - p_k| <= radius[k] + pad``, and the number of sources in them."""
+    g = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for t in range(g * size, wp.min(g * size + size, count)):
+        k = order[t]
+        r = radius[k] + pad
+        e = wp.vec3(r, r, r)
+        lo = wp.min(lo, points[k] - e)
+        hi = wp.max(hi, points[k] + e)
+    clo = cell_coord(lo, origin, inv_h, dims)
+    chi = cell_coord(hi, origin, inv_h, dims)
+    box_lo[g] = clo
+    box_hi[g] = chi
+    n = int(0)
+    for row in range(box_rows(clo, chi)):
+        span = row_span(row, clo, chi, dims, first)
+        n += span[1] - span[0]
+    total[g] = n
+
+
+@wp.kernel(enable_backward=False)
+def pack_soft_sources(
+    order: wp.array(dtype=int),
+    mid: wp.array(dtype=wp.vec3),
+    length: wp.array(dtype=float),
+    angle: wp.array(dtype=float),
+    enormal: wp.array(dtype=wp.vec3),
+    pos: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+):
+    """Edges in sorted order as two 16-byte records: ``pos = (m_j, L_j)``, ``val = (L_j alpha_j delta_j, L_j n_j)``."""
+    i = wp.tid()
+    j = order[i]
+    L = length[j]
+    m = mid[j]
+    u = enormal[j] * L
+    pos[i] = wp.vec4(m[0], m[1], m[2], L)
+    val[i] = wp.vec4(L * angle[j], u[0], u[1], u[2])
+
+
+@wp.kernel(enable_backward=False)
+def pack_ball_sources(
+    order: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    edges: wp.array(dtype=wp.vec4i),
+    angle: wp.array(dtype=float),
+    enormal: wp.array(dtype=wp.vec3),
+    seg_a: wp.array(dtype=wp.vec4),
+    seg_l: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+):
+    """Edges in sorted order for the ball kernels: ``seg_a = (x_a, 1 / L^2)``, ``seg_l = (x_b - x_a, L)``,
+    ``val = (alpha_j delta_j, n_j)``."""
+    i = wp.tid()
+    j = order[i]
+    ev = edges[j]
+    xa = x[ev[0]]
+    l = x[ev[1]] - xa
+    ll = wp.dot(l, l)
+    inv = float(0.0)
+    if ll > 0.0:
+        inv = 1.0 / ll
+    seg_a[i] = wp.vec4(xa[0], xa[1], xa[2], inv)
+    seg_l[i] = wp.vec4(l[0], l[1], l[2], wp.sqrt(ll))
+    u = enormal[j]
+    val[i] = wp.vec4(angle[j], u[0], u[1], u[2])
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def soft_cells(
+    x: wp.array(dtype=wp.vec3),
+    tau: wp.array(dtype=float),
+    kappa: float,
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    pos: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+    part_n: wp.array2d(dtype=wp.vec3),
+):
+    """VNC-soft, Eq. (3), partial sums of split ``s`` for sorted query ``t``, cut off at ``r = kappa sigma = tau``."""
+    s, t = wp.tid()
+    if t >= count:
+        return
+    k = order[t]
+    g = t // size
+    p = x[k]
+    r = tau[k]
+    sigma = r / kappa
+    ngk = -1.0 / (2.0 * sigma * sigma)
+    r2 = r * r
+    lo = box_lo[g]
+    hi = box_hi[g]
+    win = split_window(total[g], s, part_num.shape[0])
+    seen = int(0)
+    acc = vec5()
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            ep = load4(pos, i)
+            d = p - wp.vec3(ep[0], ep[1], ep[2])
+            q = wp.dot(d, d)
+            if q <= r2:
+                w = wp.exp(q * ngk)
+                ev = load4(val, i)
+                acc[0] += w * ev[0]
+                acc[1] += w * ep[3]
+                acc[2] += w * ev[1]
+                acc[3] += w * ev[2]
+                acc[4] += w * ev[3]
+        seen += n
+        if seen >= win[1]:
+            break
+    part_num[s, t] = acc[0]
+    part_den[s, t] = acc[1]
+    part_n[s, t] = wp.vec3(acc[2], acc[3], acc[4])
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def ball_cells(
+    points: wp.array(dtype=wp.vec3),
+    radius: wp.array(dtype=float),
+    g: wp.array(dtype=float),
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    seg_a: wp.array(dtype=wp.vec4),
+    seg_l: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+    splits: int,
+    row0: int,
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+    part_n: wp.array2d(dtype=wp.vec3),
+):
+    """Exact edge/ball sums of Eqs. (1)-(2), partial sums of split ``s`` (of ``splits``) for sorted query ``t``,
+    written to row ``row0 + s`` (long edges are traversed separately, in rows of their own).
+
+    ``num = sum alpha delta w l``, ``den = sum w l``, ``n = sum w l n_j`` with ``l`` the chord inside the ball of
+    radius ``radius[k]`` and ``w = exp(-g[k] |p - m_j|^2)`` (``g = 0``: w = 1).
+    """
+    s, t = wp.tid()
+    if t >= count:
+        return
+    k = order[t]
+    grp = t // size
+    p = points[k]
+    r = radius[k]
+    r2 = r * r
+    gk = g[k]
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    win = split_window(total[grp], s, splits)
+    seen = int(0)
+    acc = vec5()
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            sa = load4(seg_a, i)
+            sl = load4(seg_l, i)
+            oc = wp.vec3(sa[0], sa[1], sa[2]) - p
+            l = wp.vec3(sl[0], sl[1], sl[2])
+            lo_ = wp.dot(l, oc)
+            oo = wp.dot(oc, oc)
+            ll = sl[3] * sl[3]
+            w = chord(lo_, oo, ll, sa[3], sl[3], r2)
+            if w > 0.0:
+                if gk > 0.0:
+                    # |p - m_j|^2 with m_j = x_a + l / 2
+                    w = w * wp.exp(-gk * (oo + lo_ + 0.25 * ll))
+                ev = load4(val, i)
+                acc[0] += w * ev[0]
+                acc[1] += w
+                acc[2] += w * ev[1]
+                acc[3] += w * ev[2]
+                acc[4] += w * ev[3]
+        seen += n
+        if seen >= win[1]:
+            break
+    part_num[row0 + s, t] = acc[0]
+    part_den[row0 + s, t] = acc[1]
+    part_n[row0 + s, t] = wp.vec3(acc[2], acc[3], acc[4])
+
+
+@wp.kernel(enable_backward=False)
+def reduce_sums(
+    order: wp.array(dtype=int),
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+    part_n: wp.array2d(dtype=wp.vec3),
+    num: wp.array(dtype=float),
+    den: wp.array(dtype=float),
+    nsum: wp.array(dtype=wp.vec3),
+    H: wp.array(dtype=float),
+    n: wp.array(dtype=wp.vec3),
+):
+    """Adds the split partial sums in a fixed order and scatters them to the query's own index ``order[t]``;
+    ``H = num / (2 den)`` (Eqs. (2), (3), zero where nothing was in reach), ``n = nsum / |nsum|``."""
+    t = wp.tid()
+    k = order[t]
+    a = float(0.0)
+    b = float(0.0)
+    c = wp.vec3(0.0)
+    for s in range(part_num.shape[0]):
+        a += part_num[s, t]
+        b += part_den[s, t]
+        c += part_n[s, t]
+    num[k] = a
+    den[k] = b
+    nsum[k] = c
+    h = float(0.0)
+    if b > 0.0:
+        h = a / (2.0 * b)
+    H[k] = h
+    n[k] = c / wp.max(wp.length(c), 1.0e-30)
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def soft_cells_grad_x(
+    x: wp.array(dtype=wp.vec3),
+    tau: wp.array(dtype=float),
+    kappa: float,
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    pos: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+    num: wp.array(dtype=float),
+    den: wp.array(dtype=float),
+    nsum: wp.array(dtype=wp.vec3),
+    H_grad: wp.array(dtype=float),
+    n_grad: wp.array(dtype=wp.vec3),
+    part_gx: wp.array2d(dtype=wp.vec3),
+):
+    """Adjoint of :func:`soft_cells` w.r.t. the query vertex (the ``x_grad`` part of :func:`soft_backward`),
+    gathered over the same pairs: ``sum_j -2 g w_kj (gN L_j alpha_j + gD L_j + gS . L_j n_j) (x_k - m_j)``."""
+    s, t = wp.tid()
+    if t >= count:
+        return
+    k = order[t]
+    grp = t // size
+    D = den[k]
+    if D <= 0.0:
+        part_gx[s, t] = wp.vec3(0.0)
+        return
+    p = x[k]
+    r = tau[k]
+    sigma = r / kappa
+    gk = 1.0 / (2.0 * sigma * sigma)
+    r2 = r * r
+    gN = H_grad[k] / (2.0 * D)
+    gD = -H_grad[k] * num[k] / (2.0 * D * D)
+    S = nsum[k]
+    sl = wp.max(wp.length(S), 1.0e-30)
+    nk = S / sl
+    gS = (n_grad[k] - nk * wp.dot(nk, n_grad[k])) / sl
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    win = split_window(total[grp], s, part_gx.shape[0])
+    seen = int(0)
+    acc = wp.vec3(0.0)
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            ep = load4(pos, i)
+            d = p - wp.vec3(ep[0], ep[1], ep[2])
+            q = wp.dot(d, d)
+            w = float(0.0)
+            if q <= r2:
+                w = wp.exp(-q * gk)
+            ev = load4(val, i)
+            acc += (w * (gN * ev[0] + gD * ep[3] + wp.dot(gS, wp.vec3(ev[1], ev[2], ev[3])))) * d
+        seen += n
+        if seen >= win[1]:
+            break
+    part_gx[s, t] = (-2.0 * gk) * acc
+
+
+@wp.kernel(enable_backward=False)
+def reduce_add_vec3(order: wp.array(dtype=int), part: wp.array2d(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    """``out[order[t]] += sum_s part[s, t]`` (fixed order)."""
+    t = wp.tid()
+    acc = wp.vec3(0.0)
+    for s in range(part.shape[0]):
+        acc += part[s, t]
+    k = order[t]
+    out[k] = out[k] + acc
+
+
+@wp.kernel(enable_backward=False)
+def pack_vertex_adjoints(
+    order: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    tau: wp.array(dtype=float),
+    kappa: float,
+    num: wp.array(dtype=float),
+    den: wp.array(dtype=float),
+    nsum: wp.array(dtype=wp.vec3),
+    H_grad: wp.array(dtype=float),
+    n_grad: wp.array(dtype=wp.vec3),
+    pos: wp.array(dtype=wp.vec4),
+    coef: wp.array(dtype=wp.vec4),
+    gs: wp.array(dtype=wp.vec4),
+):
+    """Vertices in sorted order as sources of the edge adjoint pass: ``pos = (x_k, tau_k^2)``,
+    ``coef = (g_k, gN_k, gD_k, 0)`` and ``gs = (gS_k, 0)`` (see :func:`soft_backward`)."""
+    i = wp.tid()
+    k = order[i]
+    p = x[k]
+    r = tau[k]
+    sigma = r / kappa
+    D = den[k]
+    gN = float(0.0)
+    gD = float(0.0)
+    gS = wp.vec3(0.0)
+    if D > 0.0:
+        gN = H_grad[k] / (2.0 * D)
+        gD = -H_grad[k] * num[k] / (2.0 * D * D)
+        S = nsum[k]
+        sl = wp.max(wp.length(S), 1.0e-30)
+        nk = S / sl
+        gS = (n_grad[k] - nk * wp.dot(nk, n_grad[k])) / sl
+    pos[i] = wp.vec4(p[0], p[1], p[2], r * r)
+    coef[i] = wp.vec4(1.0 / (2.0 * sigma * sigma), gN, gD, 0.0)
+    gs[i] = wp.vec4(gS[0], gS[1], gS[2], 0.0)
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def soft_cells_grad_edges(
+    mid: wp.array(dtype=wp.vec3),
+    angle: wp.array(dtype=float),
+    enormal: wp.array(dtype=wp.vec3),
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    pos: wp.array(dtype=wp.vec4),
+    coef: wp.array(dtype=wp.vec4),
+    gs: wp.array(dtype=wp.vec4),
+    part_a: wp.array2d(dtype=float),
+    part_b: wp.array2d(dtype=float),
+    part_c: wp.array2d(dtype=wp.vec3),
+    part_m: wp.array2d(dtype=wp.vec3),
+):
+    """Adjoint of :func:`soft_cells` w.r.t. the edge quantities, gathered per edge over the vertices that reach it:
+    ``A = sum gN w``, ``B = sum gD w``, ``C = sum gS w`` and ``M = sum g w (gN alpha + gD + gS . n_j) (x_k - m_j)``."""
+    s, t = wp.tid()
+    if t >= count:
+        return
+    j = order[t]
+    grp = t // size
+    m = mid[j]
+    a = angle[j]
+    u = enormal[j]
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    win = split_window(total[grp], s, part_a.shape[0])
+    seen = int(0)
+    A = float(0.0)
+    B = float(0.0)
+    C = wp.vec3(0.0)
+    M = wp.vec3(0.0)
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            vp = load4(pos, i)
+            d = wp.vec3(vp[0], vp[1], vp[2]) - m
+            q = wp.dot(d, d)
+            vc = load4(coef, i)
+            w = float(0.0)
+            if q <= vp[3]:
+                w = wp.exp(-q * vc[0])
+            g4 = load4(gs, i)
+            gsv = wp.vec3(g4[0], g4[1], g4[2])
+            A += vc[1] * w
+            B += vc[2] * w
+            C += w * gsv
+            M += (vc[0] * w * (vc[1] * a + vc[2] + wp.dot(gsv, u))) * d
+        seen += n
+        if seen >= win[1]:
+            break
+    part_a[s, t] = A
+    part_b[s, t] = B
+    part_c[s, t] = C
+    part_m[s, t] = M
+
+
+@wp.kernel(enable_backward=False)
+def reduce_edge_grads(
+    order: wp.array(dtype=int),
+    length: wp.array(dtype=float),
+    angle: wp.array(dtype=float),
+    enormal: wp.array(dtype=wp.vec3),
+    part_a: wp.array2d(dtype=float),
+    part_b: wp.array2d(dtype=float),
+    part_c: wp.array2d(dtype=wp.vec3),
+    part_m: wp.array2d(dtype=wp.vec3),
+    angle_grad: wp.array(dtype=float),
+    length_grad: wp.array(dtype=float),
+    enormal_grad: wp.array(dtype=wp.vec3),
+    mid_grad: wp.array(dtype=wp.vec3),
+):
+    """Edge gradients from the gathered sums (the atomics of :func:`soft_backward`, added up per edge):
+    ``dalpha += L A``, ``dn += L C``, ``dL += alpha A + B + n . C``, ``dm += 2 L M``."""
+    t = wp.tid()
+    j = order[t]
+    A = float(0.0)
+    B = float(0.0)
+    C = wp.vec3(0.0)
+    M = wp.vec3(0.0)
+    for s in range(part_a.shape[0]):
+        A += part_a[s, t]
+        B += part_b[s, t]
+        C += part_c[s, t]
+        M += part_m[s, t]
+    L = length[j]
+    angle_grad[j] = angle_grad[j] + L * A
+    enormal_grad[j] = enormal_grad[j] + L * C
+    length_grad[j] = length_grad[j] + angle[j] * A + B + wp.dot(enormal[j], C)
+    mid_grad[j] = mid_grad[j] + (2.0 * L) * M
+
+
+@wp.func
+def scale_params(taus: wp.array(dtype=float), offset: int, kappa: float):
+    """Squared radii and Gaussian factors ``kappa^2 / (2 tau^2)`` of the (up to) 16 scales ``taus[offset:]``;
+    missing scales get radius^2 = -1 (never reached). ``kappa = 0`` gives unweighted scales (factor 0)."""
+    r2 = vec16()
+    gs = vec16()
+    for c in range(16):
+        r2[c] = -1.0
+        if offset + c < taus.shape[0]:
+            tc = taus[offset + c]
+            r2[c] = tc * tc
+            gs[c] = kappa * kappa / (2.0 * tc * tc)
+    return r2, gs
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def soft_cells_multiscale(
+    x: wp.array(dtype=wp.vec3),
+    taus: wp.array(dtype=float),
+    offset: int,
+    kappa: float,
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    pos: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+):
+    """Eq. (3) at the 16 scales ``taus[offset:offset + 16]`` (ascending) in one traversal at the largest.
+
+    The 32 sums live in registers; row ``16 s + c`` of the partial arrays holds scale ``c`` of split ``s``.
+    """
+    s, t = wp.tid()
+    if t >= count:
+        return
+    k = order[t]
+    grp = t // size
+    r2, gs = scale_params(taus, offset, kappa)
+    rmax2 = float(-1.0)
+    for c in range(16):
+        rmax2 = wp.max(rmax2, r2[c])
+    p = x[k]
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    win = split_window(total[grp], s, part_num.shape[0] // 16)
+    seen = int(0)
+    an = vec16()
+    ad = vec16()
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            ep = load4(pos, i)
+            d = p - wp.vec3(ep[0], ep[1], ep[2])
+            q = wp.dot(d, d)
+            if q <= rmax2:
+                la = load4(val, i)[0]
+                L = ep[3]
+                for c in range(16):
+                    if q <= r2[c]:
+                        w = wp.exp(-q * gs[c])
+                        an[c] += w * la
+                        ad[c] += w * L
+        seen += n
+        if seen >= win[1]:
+            break
+    for c in range(16):
+        part_num[16 * s + c, t] = an[c]
+        part_den[16 * s + c, t] = ad[c]
+
+
+@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+def ball_cells_multiscale(
+    points: wp.array(dtype=wp.vec3),
+    taus: wp.array(dtype=float),
+    offset: int,
+    kappa: float,
+    count: int,
+    size: int,
+    order: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3i),
+    box_hi: wp.array(dtype=wp.vec3i),
+    total: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    dims: wp.vec3i,
+    seg_a: wp.array(dtype=wp.vec4),
+    seg_l: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+    splits: int,
+    row0: int,
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+):
+    """Eq. (2) at the 16 scales ``taus[offset:offset + 16]`` in one traversal at the largest radius
+    (``kappa = 0``: unweighted); split ``s`` writes rows ``16 (row0 + s) + c``."""
+    s, t = wp.tid()
+    if t >= count:
+        return
+    k = order[t]
+    grp = t // size
+    r2, gs = scale_params(taus, offset, kappa)
+    rmax2 = float(-1.0)
+    for c in range(16):
+        rmax2 = wp.max(rmax2, r2[c])
+    p = points[k]
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    win = split_window(total[grp], s, splits)
+    seen = int(0)
+    an = vec16()
+    ad = vec16()
+    for row in range(box_rows(lo, hi)):
+        span = row_span(row, lo, hi, dims, first)
+        n = span[1] - span[0]
+        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+            sa = load4(seg_a, i)
+            sl = load4(seg_l, i)
+            oc = wp.vec3(sa[0], sa[1], sa[2]) - p
+            l = wp.vec3(sl[0], sl[1], sl[2])
+            lo_ = wp.dot(l, oc)
+            oo = wp.dot(oc, oc)
+            ll = sl[3] * sl[3]
+            # the chord grows with the radius: no chord at the largest scale means none at any
+            if lo_ * lo_ - ll * (oo - rmax2) > 0.0:
+                a = load4(val, i)[0]
+                q = oo + lo_ + 0.25 * ll
+                for c in range(16):
+                    l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[c])
+                    if l_in > 0.0:
+                        w = l_in * wp.exp(-q * gs[c])
+                        an[c] += w * a
+                        ad[c] += w
+        seen += n
+        if seen >= win[1]:
+            break
+    for c in range(16):
+        part_num[16 * (row0 + s) + c, t] = an[c]
+        part_den[16 * (row0 + s) + c, t] = ad[c]
+
+
+@wp.kernel(enable_backward=False)
+def reduce_multiscale(
+    order: wp.array(dtype=int),
+    part_num: wp.array2d(dtype=float),
+    part_den: wp.array2d(dtype=float),
+    offset: int,
+    H: wp.array2d(dtype=float),
+):
+    """``H[offset + c, order[t]] = num / (2 den)`` from the split partials of scale ``c`` (zero where ``den = 0``)."""
+    c, t = wp.tid()
+    a = float(0.0)
+    b = float(0.0)
+    for s in range(part_num.shape[0] // 16):
+        a += part_num[16 * s + c, t]
+        b += part_den[16 * s + c, t]
+    h = float(0.0)
+    if b > 0.0:
+        h = a / (2.0 * b)
+    H[offset + c, order[t]] = h
+
+
+@wp.kernel(enable_backward=False)
+def gaussian_factor(radius: wp.array(dtype=float), kappa: float, g: wp.array(dtype=float)):
+    """``g = kappa^2 / (2 r^2)``: the Gaussian factor ``1 / (2 sigma^2)`` with ``sigma = r / kappa``."""
+    i = wp.tid()
+    r = radius[i]
+    g[i] = kappa * kappa / (2.0 * r * r)

@@ -400,7 +400,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     float32, ``shape_id`` () int64 (position of the shape in :attr:`shape_names`, the same for every
     split) and ``stage`` () int64. The subsets come from a generator seeded by ``(seed, epoch, i)``,
     so items are reproducible, differ across epochs (:meth:`set_epoch`) and are safe in DataLoader
-    workers. Every file is checked against its SHA-256 in ``index.json`` when read; a corrupt one
+    workers. With ``repeats = k`` every stage appears k times per epoch (item ``i`` is stage
+    ``i % n_stages``), each time with its own subsets: small sets then fill a batch, and the
+    DataLoader workers are restarted k times less often. Every file is checked against its SHA-256 in ``index.json`` when read; a corrupt one
     raises :class:`DatasetError` and is never returned.
 
     Args:
@@ -411,18 +413,22 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         holdout: shape names held out for generalization tests.
         seed: base seed of the subsets.
         near_fraction: share of near-surface queries per item.
-        cache: keep checked arrays in memory after the first read.
+        cache: keep checked arrays in memory after the first read (see :meth:`preload`).
+        repeats: passes over the stages per epoch (>= 1).
     """
 
     def __init__(self, root: str | os.PathLike, *, num_surface: int = 2048, num_queries: int = 4096,
                  split: str = "train", holdout: Sequence[str] = (), seed: int = 0, near_fraction: float = 0.5,
-                 cache: bool = False):
+                 cache: bool = False, repeats: int = 1):
         self.root = Path(root)
         index = _read_index(self.root)
         if split not in ("train", "test", "all"):
             raise ValueError(f"TrajectoryDataset: split must be 'train', 'test' or 'all', got {split!r}")
         if num_surface < 1 or num_queries < 1 or not 0.0 <= near_fraction <= 1.0:
             raise ValueError("TrajectoryDataset: num_surface and num_queries must be >= 1, near_fraction in [0, 1]")
+        if int(repeats) < 1:
+            raise ValueError(f"TrajectoryDataset: repeats must be >= 1, got {repeats}")
+        self.repeats = int(repeats)
         holdout = (holdout,) if isinstance(holdout, str) else tuple(holdout)
         self.shapes = index["shapes"]
         self.shape_names = [s["name"] for s in self.shapes]
@@ -439,17 +445,29 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         self._cache: dict[int, dict[str, np.ndarray]] | None = {} if cache else None
 
     def __len__(self) -> int:
-        return len(self.items)
+        return len(self.items) * self.repeats
 
     def item_ids(self) -> list[tuple[int, int]]:
         """``(shape_id, stage)`` of every item, without reading any file."""
-        return [(sid, int(st["index"])) for sid, st in self.items]
+        return [(sid, int(st["index"])) for sid, st in self.items] * self.repeats
+
+    def preload(self) -> None:
+        """Read and check every sample file into the cache now (``cache=True`` only).
+
+        DataLoader workers forked afterwards share the arrays instead of each reading every file again
+        at the start of every epoch.
+        """
+        if self._cache is None:
+            raise ValueError("TrajectoryDataset.preload: the dataset was built with cache=False")
+        for i in range(len(self.items)):
+            self._arrays(i)
 
     def set_epoch(self, epoch: int) -> None:
         """Draw new subsets: items depend on ``(seed, epoch, i)``."""
         self.epoch = int(epoch)
 
     def _arrays(self, i: int) -> dict[str, np.ndarray]:
+        i %= len(self.items)
         if self._cache is not None and i in self._cache:
             return self._cache[i]
         st = self.items[i][1]
@@ -462,7 +480,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         return arrays
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        sid, st = self.items[i]
+        if not 0 <= i < len(self):
+            raise IndexError(f"TrajectoryDataset: index {i} out of range [0, {len(self)})")
+        sid, st = self.items[i % len(self.items)]
         a = self._arrays(i)
         rng = np.random.default_rng([self.seed, self.epoch, int(i)])
         ns = a["surface"].shape[0]

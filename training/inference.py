@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -20,27 +20,36 @@ from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
 from .checkpoint import load_model
 from .train import resolve_device
 
-__all__ = ["surface_condition", "decode_sdf_grid", "extract_mesh", "decode_mesh", "generate"]
+__all__ = ["surface_condition", "decode_sdf_grid", "extract_mesh", "decode_mesh", "write_predictions", "predict_times",
+           "generate"]
 
 
 def _model_device(model: torch.nn.Module) -> torch.device:
     return next(model.parameters()).device
 
 
-def surface_condition(mesh: Mesh, *, num_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+def surface_condition(mesh: Mesh, *, num_points: int, seed: int = 0,
+                      normalization: tuple[Sequence[float], float] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
     """Encoder input of a mesh: normalised surface points and unit normals.
 
     Args:
-        mesh: the detailed input (t = 1), any units.
+        mesh: the surface to encode, any units.
         num_points: surface samples (area-weighted).
         seed: sampling seed.
+        normalization: ``(center (3,), scale)`` to apply, ``x_norm = (x - center) * scale``; None
+            computes the mesh's own (:func:`vnc_warp.training.data.normalization`). Later stages of a
+            trajectory take the normalization of its stage 0, as in the training data.
 
     Returns:
         ``(surface, center, scale)``: (num_points, 6) float32 normalised xyz + normal, (3,) float64, float.
     """
-    from .data import normalization, sample_surface
+    from .data import normalization as own_normalization, sample_surface
 
-    center, scale = normalization(mesh)
+    if normalization is None:
+        center, scale = own_normalization(mesh)
+    else:
+        center, scale = np.asarray(normalization[0], dtype=np.float64), float(normalization[1])
     points, normals = sample_surface(mesh, num_points, np.random.default_rng(seed))
     surface = np.concatenate([(points - center) * scale, normals], axis=1).astype(np.float32)
     return surface, center, scale
@@ -108,8 +117,14 @@ def extract_mesh(sdf: np.ndarray, *, bound: float = 1.0, level: float = 0.0, cen
         raise ValueError("extract_mesh: give both center and scale, or neither")
     if scale is not None:
         verts = verts / scale + np.asarray(center, dtype=np.float64)
-    tm = trimesh.Trimesh(verts, faces, process=True)
-    tm.update_faces(tm.nondegenerate_faces())
+    # Mesh stores float32: round first, so that vertices float32 cannot tell apart are merged here and
+    # the faces they would degenerate are dropped, instead of reappearing when the mesh is saved and read.
+    tm = trimesh.Trimesh(verts.astype(np.float32).astype(np.float64), faces, process=True)
+    # Grid samples exactly at the level make slivers of (near) zero area, which Mesh rejects; they carry
+    # no surface, so they go, with a margin above Mesh's own 1e-12 relative threshold.
+    area2 = 2.0 * tm.area_faces
+    keep = tm.nondegenerate_faces() & (area2 > 1e-10 * float(np.sum(tm.extents**2)))
+    tm.update_faces(keep)
     tm.remove_unreferenced_vertices()
     try:
         return from_arrays(tm.vertices, tm.faces, name=name)
@@ -152,6 +167,93 @@ def decode_mesh(model: torch.nn.Module, latents_or_cond: torch.Tensor | np.ndarr
     return extract_mesh(sdf, bound=bound, center=center, scale=scale, name=name)
 
 
+def write_predictions(out_dir: str | os.PathLike, times: Sequence[float], decode: Callable[[float, str], Mesh], *,
+                      stem: str, file_format: str = "ply", meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Decode one mesh per time with ``decode(t, name)`` and write them plus ``generate.json``.
+
+    The listing is what :func:`vnc_warp.training.metrics.read_prediction_dir` reads, for any
+    predictor (C-VAE, latent interpolation): a time whose decode raises ``ValueError`` / ``MeshError``
+    (e.g. an empty level set) is listed with ``"file": null`` and the error.
+
+    Args:
+        out_dir: output folder (created).
+        times: normalised times in [0, 1].
+        decode: ``(t, name) -> Mesh`` in world units.
+        stem: file name stem; the mesh of time t is ``<stem>_t<t:.3f>.<file_format>``.
+        file_format: mesh file extension.
+        meta: extra entries of ``generate.json``.
+
+    Returns:
+        The content of ``generate.json``: ``meta``, ``"frame": "world"`` and ``"meshes"``, one entry per
+        time with ``t``, ``file`` (or None and ``error``), ``vertices``, ``faces``, ``watertight``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for t in times:
+        name = f"{stem}_t{t:.3f}"
+        entry: dict[str, Any] = {"t": float(t)}
+        try:
+            result = decode(float(t), name)
+        except (ValueError, MeshError) as exc:
+            entry.update(file=None, error=str(exc))
+        else:
+            path = out / f"{name}.{file_format}"
+            result.save(path)
+            entry.update(file=path.name, vertices=result.num_vertices, faces=result.num_faces,
+                         watertight=result.is_watertight)
+        entries.append(entry)
+    report = {**(meta or {}), "frame": "world", "meshes": entries}
+    tmp = out / "generate.json.tmp"
+    tmp.write_text(json.dumps(report, indent=2) + "\n")
+    os.replace(tmp, out / "generate.json")
+    return report
+
+
+def predict_times(model: torch.nn.Module, mesh: str | os.PathLike | Mesh, times: Sequence[float],
+                  out_dir: str | os.PathLike, *, num_surface: int, resolution: int = 128, seed: int = 0,
+                  file_format: str = "ply", name: str | None = None, meta: dict[str, Any] | None = None
+                  ) -> dict[str, Any]:
+    """Predict the shape of ``mesh`` at each time with a loaded model (see :func:`generate`).
+
+    Args:
+        model: a VecSet model in eval mode; a C-VAE encodes the detailed input at each t, a plain VAE
+            reconstructs the input whatever t.
+        mesh: the detailed input (t = 1), any units.
+        times: normalised times in [0, 1].
+        out_dir: output folder.
+        num_surface: encoder surface samples.
+        resolution: marching-cubes grid samples per axis.
+        seed: surface sampling seed.
+        file_format: mesh file extension.
+        name: file name stem (default: the mesh's name).
+        meta: extra entries of ``generate.json``.
+
+    Returns:
+        The content of ``generate.json`` (see :func:`write_predictions`) with the normalization.
+    """
+    times = _check_times(times)
+    src = load_mesh(mesh)
+    surface, center, scale = surface_condition(src, num_points=num_surface, seed=seed)
+
+    def decode(t: float, mesh_name: str) -> Mesh:
+        return decode_mesh(model, surface, t, resolution=resolution, center=center, scale=scale, name=mesh_name)
+
+    meta = {**(meta or {}), "input": str(mesh) if not isinstance(mesh, Mesh) else mesh.name,
+            "time_conditioned": bool(model.time_conditioned), "center": [float(c) for c in center],
+            "scale": float(scale), "resolution": resolution, "num_surface": num_surface, "seed": seed}
+    return write_predictions(out_dir, times, decode, stem=name or Path(src.name).stem or "mesh",
+                             file_format=file_format, meta=meta)
+
+
+def _check_times(times: Sequence[float]) -> list[float]:
+    times = [float(t) for t in times]
+    bad = [t for t in times if not 0.0 <= t <= 1.0]
+    if not times or bad:
+        raise ValueError(f"times must be a non-empty list of values in [0, 1], got {times}")
+    return times
+
+
 def generate(checkpoint: str | os.PathLike, mesh: str | os.PathLike | Mesh, times: Sequence[float],
              out_dir: str | os.PathLike, *, resolution: int = 128, device: str | torch.device | None = None,
              num_surface: int | None = None, seed: int = 0, file_format: str = "ply") -> dict[str, Any]:
@@ -172,34 +274,8 @@ def generate(checkpoint: str | os.PathLike, mesh: str | os.PathLike | Mesh, time
         The content of ``generate.json``: inputs, normalisation, and per time the file written (or
         the reason none was, e.g. an empty level set) with vertex and face counts.
     """
-    times = [float(t) for t in times]
-    bad = [t for t in times if not 0.0 <= t <= 1.0]
-    if not times or bad:
-        raise ValueError(f"times must be a non-empty list of values in [0, 1], got {times}")
+    times = _check_times(times)
     model, config = load_model(checkpoint, device=resolve_device(device))
-    src = load_mesh(mesh)
-    n = num_surface or config.data.num_surface
-    surface, center, scale = surface_condition(src, num_points=n, seed=seed)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = Path(src.name).stem or "mesh"
-    entries = []
-    for t in times:
-        name = f"{stem}_t{t:.3f}"
-        entry: dict[str, Any] = {"t": t}
-        try:
-            result = decode_mesh(model, surface, t, resolution=resolution, center=center, scale=scale, name=name)
-        except (ValueError, MeshError) as exc:
-            entry.update(file=None, error=str(exc))
-        else:
-            path = out / f"{name}.{file_format}"
-            result.save(path)
-            entry.update(file=path.name, vertices=result.num_vertices, faces=result.num_faces,
-                         watertight=result.is_watertight)
-        entries.append(entry)
-    report = {"checkpoint": str(checkpoint), "input": str(mesh) if not isinstance(mesh, Mesh) else mesh.name,
-              "model_kind": config.model.kind, "time_conditioned": bool(model.time_conditioned),
-              "center": [float(c) for c in center], "scale": float(scale), "resolution": resolution,
-              "num_surface": n, "seed": seed, "meshes": entries}
-    (out / "generate.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report
+    return predict_times(model, mesh, times, out_dir, num_surface=num_surface or config.data.num_surface,
+                         resolution=resolution, seed=seed, file_format=file_format,
+                         meta={"checkpoint": str(checkpoint), "model_kind": config.model.kind})

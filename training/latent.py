@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["analyze_latents", "pca", "pearson", "scatter_png"]
+__all__ = ["analyze_latents", "latent_anatomy", "pca", "pearson", "scatter_png", "trajectory_latents"]
 
 # viridis at 0, 1/4, 1/2, 3/4, 1 (RGB), for the Pillow fallback
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=np.float64)
@@ -148,21 +148,28 @@ def scatter_png(path: str | os.PathLike, xy, values, *, title: str = "", xlabel:
 
 
 def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, seed: int = 0,
-                    use_umap: bool = True) -> dict:
+                    use_umap: bool = True, groups=None, prefix: str = "", title: str = "") -> dict:
     """Numbers and plots of the latent anatomy of Fig. 11.
 
     Args:
         latents: (N, M, C) latent sets (e.g. ``z_ctl`` with M = 2048 tokens) or (N, C) latent vectors;
             NumPy or torch.
         t: (N,) normalized evolution time of each sample.
-        out_dir: when given, writes ``pca_mean_pooled.png`` and (with UMAP) ``umap_max_pooled.png`` there.
+        out_dir: when given, writes ``<prefix>pca_mean_pooled.png`` and (with UMAP)
+            ``<prefix>umap_max_pooled.png`` there.
         seed: UMAP random state.
         use_umap: run UMAP on the max-pooled latents when the ``umap`` package is importable.
+        groups: (N,) labels (e.g. the shape of each sample); adds the within-group correlations.
+        prefix: file name prefix of the plots.
+        title: prefix of the plot titles (e.g. the model).
 
     Returns:
         ``{"n", "norm_t_pearson" (r of the Frobenius norm of each latent with t, signed: > 0 is the radial
         structure), "pc1_t_abs_pearson" (|r| of PC1 of the mean-pooled latents with t),
-        "explained_variance_ratio" ([PC1, PC2]), "umap" (bool), "plots" ({name: path}), "plot_backend"}``.
+        "explained_variance_ratio" ([PC1, PC2]), "umap" (bool), "plots" ({name: path}), "plot_backend"}``;
+        with ``groups`` also ``"norm_t_pearson_within"`` and ``"pc1_t_pearson_within"``: the mean over
+        groups of >= 3 samples of r within each group (PC1 of the pooled PCA, its sign fixed by the
+        pooled correlation with t so that the groups are comparable), NaN when no group has 3 samples.
     """
     z, t = _numpy(latents), _numpy(t).ravel()
     if z.ndim == 2:
@@ -174,15 +181,30 @@ def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, see
     k = min(2, *mean_pooled.shape)
     p = pca(mean_pooled, k)
     scores = p["scores"] if k == 2 else np.concatenate([p["scores"], np.zeros_like(p["scores"])], axis=1)
+    norms = np.linalg.norm(z.reshape(z.shape[0], -1), axis=1)
+    pc1_r = pearson(scores[:, 0], t)
     report = {
         "n": int(z.shape[0]),
-        "norm_t_pearson": pearson(np.linalg.norm(z.reshape(z.shape[0], -1), axis=1), t),
-        "pc1_t_abs_pearson": abs(pearson(scores[:, 0], t)),
+        "norm_t_pearson": pearson(norms, t),
+        "pc1_t_abs_pearson": abs(pc1_r),
         "explained_variance_ratio": [float(r) for r in p["explained_variance_ratio"]],
         "umap": False,
         "plots": {},
         "plot_backend": None,
     }
+    if groups is not None:
+        labels = np.asarray(groups).ravel()
+        if labels.shape != t.shape:
+            raise ValueError(f"analyze_latents: groups must be (N,) = {t.shape}, got {labels.shape}")
+        pc1 = scores[:, 0] * (-1.0 if pc1_r < 0.0 else 1.0)
+        within_norm, within_pc1 = [], []
+        for g in np.unique(labels):
+            sel = labels == g
+            if sel.sum() >= 3:
+                within_norm.append(pearson(norms[sel], t[sel]))
+                within_pc1.append(pearson(pc1[sel], t[sel]))
+        report["norm_t_pearson_within"] = float(np.nanmean(within_norm)) if within_norm else float("nan")
+        report["pc1_t_pearson_within"] = float(np.nanmean(within_pc1)) if within_pc1 else float("nan")
     embedding = None
     if use_umap and z.shape[0] >= 4:
         try:
@@ -195,12 +217,88 @@ def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, see
             report["umap"] = True
     if out_dir is not None:
         out = Path(out_dir)
-        path = out / "pca_mean_pooled.png"
-        report["plot_backend"] = scatter_png(path, scores, t, title="PCA of mean-pooled latents",
+        head = f"{title}: " if title else ""
+        path = out / f"{prefix}pca_mean_pooled.png"
+        report["plot_backend"] = scatter_png(path, scores, t, title=f"{head}PCA of mean-pooled latents",
                                              xlabel="PC1", ylabel="PC2")
         report["plots"]["pca"] = str(path)
         if embedding is not None:
-            path = out / "umap_max_pooled.png"
-            scatter_png(path, embedding, t, title="UMAP of max-pooled latents", xlabel="UMAP1", ylabel="UMAP2")
+            path = out / f"{prefix}umap_max_pooled.png"
+            scatter_png(path, embedding, t, title=f"{head}UMAP of max-pooled latents", xlabel="UMAP1",
+                        ylabel="UMAP2")
             report["plots"]["umap"] = str(path)
+    return report
+
+
+def trajectory_latents(model, traj_dirs, *, num_surface: int = 8192, seed: int = 0) -> dict:
+    """Latents of every stage of VNC-Flow trajectories, the input of :func:`analyze_latents`.
+
+    A time-conditioned model (C-VAE-I, C-VAE-II) encodes, as at inference, the trajectory's stage-0
+    surface at each stage's normalized time t (z_ctl); a plain VAE encodes each stage's own surface.
+    Every stage is normalized with its trajectory's stage-0 normalization, as in the training data.
+
+    Args:
+        model: a VecSet model in eval mode.
+        traj_dirs: trajectory directories.
+        num_surface: encoder surface samples per stage.
+        seed: surface sampling seed.
+
+    Returns:
+        ``{"latents": (N, M, C) float32, "t": (N,) float64, "shape": [N names], "stage": [N indices]}``.
+    """
+    from .baseline import encode_surface
+    from .data import normalization, read_trajectory
+    from .inference import surface_condition
+
+    latents, times, shapes, stages = [], [], [], []
+    for traj_dir in traj_dirs:
+        traj = read_trajectory(traj_dir)
+        stage0 = traj.load_stage(0)
+        norm = normalization(stage0)
+        cond = surface_condition(stage0, num_points=num_surface, seed=seed, normalization=norm)[0]
+        for pos, st in enumerate(traj.stages):
+            if model.time_conditioned:
+                z = encode_surface(model, cond, st.t)
+            else:
+                surface = surface_condition(traj.load_stage(pos), num_points=num_surface, seed=seed,
+                                            normalization=norm)[0]
+                z = encode_surface(model, surface)
+            latents.append(z[0].cpu().numpy())
+            times.append(st.t)
+            shapes.append(traj.name)
+            stages.append(st.index)
+    if not latents:
+        raise ValueError("trajectory_latents: no trajectories given")
+    return {"latents": np.stack(latents).astype(np.float32), "t": np.asarray(times, dtype=np.float64),
+            "shape": shapes, "stage": stages}
+
+
+def latent_anatomy(model, traj_dirs, *, out_dir: str | os.PathLike | None = None, prefix: str = "",
+                   title: str = "", num_surface: int = 8192, seed: int = 0, use_umap: bool = True,
+                   figure: str | os.PathLike | None = None) -> dict:
+    """Encode every stage of (held-out) trajectories and analyse the latents (Fig. 11).
+
+    Args:
+        model: a trained VecSet model in eval mode (C-VAE-I for Fig. 11; a plain VAE as the control).
+        traj_dirs: trajectory directories.
+        out_dir, prefix, title, use_umap: see :func:`analyze_latents`.
+        num_surface, seed: see :func:`trajectory_latents`.
+        figure: also draw Fig. 11 (:func:`vnc_warp.figures.latent_space`) to this PNG path.
+
+    Returns:
+        The :func:`analyze_latents` report (with within-trajectory correlations), plus ``"shapes"``
+        (the trajectory names), ``"latent_shape"`` ([M, C]) and ``"encoding"``: ``"stage0_at_t"`` or
+        ``"own_stage"``; with ``figure``, ``plots["fig11"]`` is its path.
+    """
+    data = trajectory_latents(model, traj_dirs, num_surface=num_surface, seed=seed)
+    report = analyze_latents(data["latents"], data["t"], out_dir=out_dir, seed=seed, use_umap=use_umap,
+                             groups=data["shape"], prefix=prefix, title=title)
+    report.update(shapes=sorted(set(data["shape"])), latent_shape=list(data["latents"].shape[1:]),
+                  encoding="stage0_at_t" if model.time_conditioned else "own_stage")
+    if figure is not None:
+        from vnc_warp.figures import latent_space
+
+        latent_space(data["latents"], data["t"], figure, use_umap=use_umap, seed=seed,
+                     title=f"Fig. 11  {title or 'C-VAE'} latents, every stage of {len(report['shapes'])} trajectories")
+        report["plots"]["fig11"] = str(figure)
     return report

@@ -346,7 +346,10 @@ class QueryDecoder(nn.Module):
                 x = self.cross(self.query_proj(self.embedder(queries)), tokens)
         else:
             x = self.cross(self.query_proj(self.embedder(queries)), tokens)
-        return self.head(self.norm(x)).squeeze(-1)
+        # The SDF head runs in float32 even under bf16 autocast: bf16 keeps 8 mantissa bits, too coarse
+        # for truncated-SDF targets whose near-surface values are a few thousandths.
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            return self.head(self.norm(x).float()).squeeze(-1)
 
 
 class LatentDecoder(nn.Module):

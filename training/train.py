@@ -2,7 +2,9 @@
 
 One process or many: launched with ``torchrun`` (``WORLD_SIZE`` > 1 in the environment), the loop
 joins the process group (NCCL on GPUs, gloo on CPU), wraps the model in DistributedDataParallel and
-shards the data with a DistributedSampler; rank 0 alone logs and writes checkpoints.
+shards the data with a DistributedSampler; rank 0 alone logs and writes checkpoints. On CUDA with
+``config.bf16`` the forward pass runs under bf16 autocast (float32 where precision matters: the SDF
+head, the losses and the eikonal gradient norm); GPUs without bf16 fall back to float32 with a warning.
 
 Data: any map-style Dataset whose items are dicts with ``surface`` (Ns, 6), ``queries`` (Nq, 3),
 ``tsdf`` (Nq,), ``near`` (Nq,) bool and ``t`` () (the contract of
@@ -158,9 +160,11 @@ def _setup_distributed(device: str | torch.device | None) -> _Dist:
     local = int(os.environ.get("LOCAL_RANK", str(rank)))
     dev = resolve_device(device, local_rank=local if world > 1 else None)
     owns = False
+    if dev.type == "cuda":
+        # The current device is where NCCL collectives, pinned-memory copies and the CUDA RNG state
+        # saved in checkpoints (rng_state) refer to.
+        torch.cuda.set_device(dev)
     if world > 1:
-        if dev.type == "cuda":
-            torch.cuda.set_device(dev)
         if not dist.is_initialized():
             dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo")
             owns = True
@@ -323,6 +327,9 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool,
 
     end = config.optim.total_steps if stop_at is None else stop_at
     amp = config.bf16 and ctx.device.type == "cuda"
+    if amp and not torch.cuda.is_bf16_supported():
+        warnings.warn(f"{ctx.device} does not support bf16; training in float32", stacklevel=2)
+        amp = False
     eik = config.loss.eikonal_weight > 0
     log = _Log(out / "log.jsonl", keep_until=step if resume else None) if ctx.is_main else None
     bar = tqdm(total=end, initial=step, disable=not (progress and ctx.is_main), desc=f"train {config.name}",

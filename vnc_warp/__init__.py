@@ -11,3 +11,7 @@ from .render import Camera, colorbar, colormap, montage, render_mesh, save_png
 from .plot import line_plot, scatter_plot
 from .sdf import sdf_grid, signed_distance
 from .remesh import sdf_remesh, validate_surface
+from .operators import STRATEGIES, choose_strategy
+from . import figures
+# `vw.flow` is the function (the contract); the module stays importable as `vnc_warp.flow`.
+from .flow import FlowError, FlowParams, Trajectory, flow, flow_steps, sphericity, total_complexity  # noqa: E402

@@ -7,6 +7,12 @@ a range from the mesh.
 Differentiation: :func:`vnc_soft` records itself on a ``wp.Tape`` passed as ``tape=`` (with the vertex
 positions given as a ``wp.array`` that ``requires_grad``); :mod:`vnc_warp.torch` wraps the same
 computation as a ``torch.autograd.Function``.
+
+Speed: every operator takes ``strategy=`` ("auto", "grid", "dense" or "bvh"), the way the pairs within
+the cut-off are found (see ``vnc_warp/_pairs.py``). All strategies sum over the same pairs; "auto" picks
+per call from the scale and the mesh's extent, so that no scale falls off a cliff: a uniform grid with
+warp-coherent traversal while the balls are small, an all-pairs traversal when they cover most of the
+mesh. :func:`choose_strategy` tells which one it picks.
 """
 
 from __future__ import annotations
@@ -18,10 +24,14 @@ import warp as wp
 
 from vnc_warp.kernels import vnc as _k
 
+from . import _pairs
 from ._device import get_device
 from .mesh import Mesh, MeshError
 
-__all__ = ["EdgeFields", "edge_fields", "vnc_soft", "vnc_hard", "integrated_mean_curvature"]
+__all__ = ["EdgeFields", "edge_fields", "vnc_soft", "vnc_hard", "integrated_mean_curvature", "choose_strategy",
+           "STRATEGIES"]
+
+STRATEGIES = _pairs.STRATEGIES
 
 
 @dataclass
@@ -74,7 +84,10 @@ def _per_point(value, count: int, device, what: str) -> wp.array:
         return value if value.device == device else value.to(device)
     arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float64)
     if arr.ndim == 0:
-        arr = np.full(count, float(arr))
+        v = float(arr)
+        if not (np.isfinite(v) and v > 0.0):
+            raise ValueError(f"{what} must be positive and finite, got {v}")
+        return wp.full(count, np.float32(v), dtype=wp.float32, device=device)
     if arr.shape != (count,):
         raise ValueError(f"{what}: expected a scalar or shape ({count},), got {arr.shape}")
     bad = np.nonzero(~np.isfinite(arr) | (arr <= 0.0))[0]
@@ -120,6 +133,73 @@ def _segment_bvh(x: wp.array, f: EdgeFields) -> wp.Bvh:
     return wp.Bvh(lowers, uppers)
 
 
+def _partials(groups: _pairs.Groups, device, *dtypes) -> list:
+    return [wp.empty(groups.dim, dtype=dt, device=device) for dt in dtypes]
+
+
+def _soft_bvh(x, tau_arr, kappa, f, outputs):
+    """VNC-soft through a per-thread BVH query; returns the backward closure."""
+    device = x.device
+    V = x.shape[0]
+    bvh = _midpoint_bvh(f)
+    wp.launch(_k.soft_forward, dim=V, inputs=[x, tau_arr, kappa, bvh.id, f.mid, f.length, f.angle, f.normal],
+              outputs=outputs, device=device, record_tape=False)
+    num, den, nsum, H, n = outputs
+
+    def backward():
+        wp.launch(
+            _k.soft_backward, dim=V,
+            inputs=[x, tau_arr, kappa, bvh.id, f.mid, f.length, f.angle, f.normal, num, den, nsum, H.grad, n.grad],
+            outputs=[x.grad, f.mid.grad, f.length.grad, f.angle.grad, f.normal.grad],
+            device=device, record_tape=False,
+        )
+
+    return backward
+
+
+def _soft_cells(x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str):
+    """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered)."""
+    device = x.device
+    V, E = x.shape[0], f.mid.shape[0]
+    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean)
+    pos = wp.empty(E, dtype=wp.vec4, device=device)
+    val = wp.empty(E, dtype=wp.vec4, device=device)
+    wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
+              outputs=[pos, val], device=device, record_tape=False)
+    parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3)
+    wp.launch(_k.soft_cells, dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
+              outputs=parts, device=device, record_tape=False)
+    wp.launch(_k.reduce_sums, dim=V, inputs=[groups.order, *parts], outputs=outputs, device=device,
+              record_tape=False)
+    num, den, nsum, H, n = outputs
+
+    def backward():
+        (gx,) = _partials(groups, device, wp.vec3)
+        wp.launch(_k.soft_cells_grad_x, dim=groups.dim,
+                  inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val, num, den, nsum, H.grad, n.grad],
+                  outputs=[gx], device=device, record_tape=False)
+        wp.launch(_k.reduce_add_vec3, dim=V, inputs=[groups.order, gx], outputs=[x.grad], device=device,
+                  record_tape=False)
+        # edge adjoints: each edge gathers over the vertices whose ball (radius tau_k) reaches its midpoint
+        reach = wp.full(E, np.float32(b.rmax), dtype=wp.float32, device=device)
+        vcells, egroups = _pairs.plan(f.mid, reach, x, b, strategy, b.rmax)
+        vpos = wp.empty(V, dtype=wp.vec4, device=device)
+        vcoef = wp.empty(V, dtype=wp.vec4, device=device)
+        vgs = wp.empty(V, dtype=wp.vec4, device=device)
+        wp.launch(_k.pack_vertex_adjoints, dim=V,
+                  inputs=[vcells.order, x, tau_arr, kappa, num, den, nsum, H.grad, n.grad],
+                  outputs=[vpos, vcoef, vgs], device=device, record_tape=False)
+        eparts = _partials(egroups, device, wp.float32, wp.float32, wp.vec3, wp.vec3)
+        wp.launch(_k.soft_cells_grad_edges, dim=egroups.dim,
+                  inputs=[f.mid, f.angle, f.normal, *egroups.args(vcells), vpos, vcoef, vgs],
+                  outputs=eparts, device=device, record_tape=False)
+        wp.launch(_k.reduce_edge_grads, dim=E, inputs=[egroups.order, f.length, f.angle, f.normal, *eparts],
+                  outputs=[f.angle.grad, f.length.grad, f.normal.grad, f.mid.grad], device=device,
+                  record_tape=False)
+
+    return backward
+
+
 def vnc_soft(
     mesh: Mesh,
     tau,
@@ -128,13 +208,14 @@ def vnc_soft(
     device=None,
     positions: wp.array | None = None,
     tape: wp.Tape | None = None,
+    strategy: str = "auto",
 ) -> tuple[wp.array, wp.array]:
     """VNC-soft, Eq. (3): Gaussian-weighted normalized mean curvature and averaged normal per vertex.
 
     ``H(v_k) = sum_j alpha_j delta_j w_kj L_j / (2 sum_j w_kj L_j)`` with ``w_kj = exp(-|v_k - m_j|^2 / 2 sigma^2)``,
     ``sigma = tau / kappa``; the normal is ``sum_j w_kj L_j n_j`` normalized. Sums run over interior edges whose
-    midpoint lies within the cut-off ``r = kappa * sigma = tau`` (found through a Warp BVH); the weight dropped
-    beyond it is below ``exp(-kappa^2 / 2)`` per edge.
+    midpoint lies within the cut-off ``r = kappa * sigma = tau``; the weight dropped beyond it is below
+    ``exp(-kappa^2 / 2)`` per edge.
 
     Args:
         mesh: the mesh (its connectivity; positions from ``mesh.vertices`` unless ``positions`` is given).
@@ -143,6 +224,8 @@ def vnc_soft(
         device: Warp device; defaults to ``positions.device`` or the preferred device.
         positions: (V,) vec3 ``wp.array`` overriding the vertex positions, e.g. with ``requires_grad=True``.
         tape: a ``wp.Tape`` to record on; pass the tape you are inside to differentiate through this call.
+        strategy: how pairs within the cut-off are found: "auto", "grid", "dense" or "bvh" (same result; the
+            backward pass visits the same pairs as the forward).
 
     Returns:
         ``(H, n)``: (V,) float32 dimensionless curvature (positive on convex regions) and (V,) vec3 unit normals.
@@ -150,57 +233,98 @@ def vnc_soft(
     """
     if not (kappa > 0.0):
         raise ValueError(f"kappa must be positive for VNC-soft, got {kappa}")
+    _pairs.check_strategy(strategy)
     device = positions.device if positions is not None else get_device(device)
     x = _positions(mesh, positions, device)
     V = mesh.num_vertices
     tau_arr = _per_point(tau, V, device, "tau")
+    if tape is not None and not x.requires_grad:
+        raise ValueError("vnc_soft(tape=...) needs positions given as a wp.array with requires_grad=True")
     f = edge_fields(mesh, positions=x, device=device)
-    bvh = _midpoint_bvh(f)
     rg = x.requires_grad
-    num = wp.empty(V, dtype=wp.float32, device=device)
-    den = wp.empty(V, dtype=wp.float32, device=device)
-    nsum = wp.empty(V, dtype=wp.vec3, device=device)
-    H = wp.empty(V, dtype=wp.float32, device=device, requires_grad=rg)
-    n = wp.empty(V, dtype=wp.vec3, device=device, requires_grad=rg)
-    wp.launch(
-        _k.soft_forward, dim=V,
-        inputs=[x, tau_arr, float(kappa), bvh.id, f.mid, f.length, f.angle, f.normal],
-        outputs=[num, den, nsum, H, n], device=device, record_tape=False,
-    )
+    outputs = [
+        wp.empty(V, dtype=wp.float32, device=device),
+        wp.empty(V, dtype=wp.float32, device=device),
+        wp.empty(V, dtype=wp.vec3, device=device),
+        wp.empty(V, dtype=wp.float32, device=device, requires_grad=rg),
+        wp.empty(V, dtype=wp.vec3, device=device, requires_grad=rg),
+    ]
+    if strategy == "bvh":
+        backward = _soft_bvh(x, tau_arr, float(kappa), f, outputs)
+    else:
+        b = _pairs.bounds(x, tau_arr)
+        concrete = _pairs.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0])
+        backward = _soft_cells(x, tau_arr, float(kappa), f, outputs, b, concrete)
+    H, n = outputs[3], outputs[4]
     if tape is not None:
-        if not rg:
-            raise ValueError("vnc_soft(tape=...) needs positions given as a wp.array with requires_grad=True")
-
-        def backward():
-            wp.launch(
-                _k.soft_backward, dim=V,
-                inputs=[x, tau_arr, float(kappa), bvh.id, f.mid, f.length, f.angle, f.normal, num, den, nsum,
-                        H.grad, n.grad],
-                outputs=[x.grad, f.mid.grad, f.length.grad, f.angle.grad, f.normal.grad],
-                device=device, record_tape=False,
-            )
-
         tape.record_func(backward=backward, arrays=[H, n, f.mid, f.length, f.angle, f.normal])
     return H, n
 
 
-def _ball_sums(mesh: Mesh, points, radius, g, device):
+def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, positions: wp.array | None = None) -> str:
+    """The traversal ``strategy="auto"`` takes for this call of :func:`vnc_soft` ("soft") or :func:`vnc_hard` /
+    :func:`integrated_mean_curvature` ("hard"): "grid" or "dense".
+
+    ``tau`` may be a scalar or a (V,) array, as for the operators; for a scale curve pass its largest scale.
+    """
+    if variant not in ("soft", "hard"):
+        raise ValueError(f"variant must be 'soft' or 'hard', got {variant!r}")
+    device = positions.device if positions is not None else get_device(device)
+    x = _positions(mesh, positions, device)
+    V = mesh.num_vertices
+    tau_arr = _per_point(tau, V, device, "tau")
+    E = mesh.topology.num_interior
+    if variant == "soft":
+        b = _pairs.bounds(x, tau_arr)
+        return _pairs.resolve("auto", device, b, b.rmean, V, E)
+    f = edge_fields(mesh, positions=x, device=device)
+    b = _pairs.bounds(x, tau_arr, f.length)
+    return _pairs.resolve("auto", device, b, b.rmean + 0.5 * b.lmax, V, E)
+
+
+def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str):
+    """Eqs. (1)-(2) sums per query point: ``(num, den, nsum, H, n)`` (``H``, ``n`` normalized as in Eq. (2))."""
+    _pairs.check_strategy(strategy)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     f = edge_fields(mesh, positions=x, device=device)
-    bvh = _segment_bvh(x, f)
     P = points.shape[0]
-    num = wp.empty(P, dtype=wp.float32, device=device)
-    den = wp.empty(P, dtype=wp.float32, device=device)
-    nsum = wp.empty(P, dtype=wp.vec3, device=device)
-    wp.launch(
-        _k.ball_sums, dim=P,
-        inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
-        outputs=[num, den, nsum], device=device,
-    )
-    return num, den, nsum
+    outputs = [
+        wp.empty(P, dtype=wp.float32, device=device),
+        wp.empty(P, dtype=wp.float32, device=device),
+        wp.empty(P, dtype=wp.vec3, device=device),
+        wp.empty(P, dtype=wp.float32, device=device),
+        wp.empty(P, dtype=wp.vec3, device=device),
+    ]
+    if strategy == "bvh":
+        bvh = _segment_bvh(x, f)
+        wp.launch(_k.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
+                  outputs=outputs[:3], device=device)
+        wp.launch(_k.normalize_sums, dim=P, inputs=outputs[:3], outputs=outputs[3:], device=device)
+        return outputs
+    E = f.mid.shape[0]
+    b = _pairs.bounds(x, radius, f.length)
+    # an edge crosses the ball only if its midpoint is within radius + L / 2
+    concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
+    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete)
+    groups = plans[0][1]
+    ns = groups.splits
+    parts = [wp.empty((len(plans) * ns, groups.padded), dtype=dt, device=device)
+             for dt in (wp.float32, wp.float32, wp.vec3)]
+    for i, (cells, grp) in enumerate(plans):
+        seg_a = wp.empty(E, dtype=wp.vec4, device=device)
+        seg_l = wp.empty(E, dtype=wp.vec4, device=device)
+        val = wp.empty(E, dtype=wp.vec4, device=device)
+        wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
+                  outputs=[seg_a, seg_l, val], device=device)
+        wp.launch(_k.ball_cells, dim=grp.dim,
+                  inputs=[points, radius, g, *grp.args(cells), seg_a, seg_l, val, ns, i * ns],
+                  outputs=parts, device=device)
+    wp.launch(_k.reduce_sums, dim=P, inputs=[groups.order, *parts], outputs=outputs, device=device)
+    return outputs
 
 
-def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None) -> tuple[wp.array, wp.array]:
+def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
+             strategy: str = "auto") -> tuple[wp.array, wp.array]:
     """VNC-hard, Eq. (2): exact edge/ball intersections, normalized by the weighted intersected length.
 
     ``H(v_k, r) = sum_j alpha_j delta_j w_kj l_j / (2 sum_j w_kj l_j)`` over the edges crossing the ball of
@@ -213,6 +337,7 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None) -> tupl
         tau: ball radius (mesh units): a scalar or a (V,) array.
         kappa: radius-to-sigma ratio, or None for the unweighted operator.
         device: Warp device.
+        strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_soft`).
 
     Returns:
         ``(H, n)``: (V,) float32 and (V,) vec3, on ``device``.
@@ -222,17 +347,15 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None) -> tupl
     radius = _per_point(tau, V, device, "tau")
     if kappa is not None and not (kappa > 0.0):
         raise ValueError(f"kappa must be positive or None, got {kappa}")
-    r = radius.numpy().astype(np.float64)
-    g = np.zeros(V) if kappa is None else kappa * kappa / (2.0 * r * r)
+    g = wp.zeros(V, dtype=wp.float32, device=device)
+    if kappa is not None:
+        wp.launch(_k.gaussian_factor, dim=V, inputs=[radius, float(kappa)], outputs=[g], device=device)
     points = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    num, den, nsum = _ball_sums(mesh, points, radius, wp.array(g.astype(np.float32), device=device), device)
-    H = wp.empty(V, dtype=wp.float32, device=device)
-    n = wp.empty(V, dtype=wp.vec3, device=device)
-    wp.launch(_k.normalize_sums, dim=V, inputs=[num, den, nsum], outputs=[H, n], device=device)
-    return H, n
+    outputs = _ball_sums(mesh, points, radius, g, device, strategy)
+    return outputs[3], outputs[4]
 
 
-def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None) -> wp.array:
+def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, strategy: str = "auto") -> wp.array:
     """Eq. (1): integrated discrete mean curvature in balls, ``1/2 sum_j alpha_j delta_j l_j``.
 
     The normal-cycle measure of Cohen-Steiner and Morvan, equal to trimesh's
@@ -243,6 +366,7 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None) -
         radius: ball radius (mesh units), scalar or (P,) per point.
         points: (P, 3) ball centres; defaults to the vertices.
         device: Warp device.
+        strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_soft`).
 
     Returns:
         (P,) float32 on ``device``, in mesh units (length x angle).
@@ -260,7 +384,7 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None) -
     points_wp = wp.array(np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
     r = _per_point(radius, P, device, "radius")
     g = wp.zeros(P, dtype=wp.float32, device=device)
-    num, _, _ = _ball_sums(mesh, points_wp, r, g, device)
+    num = _ball_sums(mesh, points_wp, r, g, device, strategy)[0]
     out = wp.empty(P, dtype=wp.float32, device=device)
     wp.launch(_k.scaled_copy, dim=P, inputs=[num, 0.5], outputs=[out], device=device)
     return out

@@ -2,10 +2,19 @@
 
 ``sdf_remesh`` rebuilds a mesh as the zero level set of its signed distance: Warp mesh queries
 (winding-number sign, so scans with holes still close) on a narrow-band grid, marching cubes, the
-largest connected component, quadric decimation back to the face count, and a scale about the
-centroid that restores the surface area. Every output passes :func:`validate_surface`, the
-prerequisites of the VNC operator: watertight, edge- and vertex-manifold, consistently and outwardly
-wound, finite, no degenerate faces.
+largest connected component, quadric decimation back to the face count, an isotropic
+regularization on the marching-cubes surface, and a scale about the centroid that restores the
+surface area. Every output passes :func:`validate_surface`, the prerequisites of the VNC operator:
+watertight, edge- and vertex-manifold, consistently and outwardly wound, finite, no degenerate faces.
+
+Why the regularization: VNC-soft (Eq. 3) is a length-weighted mean of dihedral angles, and a
+dihedral angle grows with the edge length (about ``L * kappa`` on a surface of curvature ``kappa``),
+so on a mesh whose edge lengths vary, H varies with them and Eq. (4) counts that as shape
+complexity. Quadric decimation is curvature-adaptive (edge lengths vary by a factor of several):
+on a remeshed sphere the total VNC-AUC was 4.5x that of an icosphere, and remeshing between VNC-Flow
+stages made the normalized time of Eq. (7) jump back up. The regularization makes the edge lengths
+nearly uniform (the paper's "regularizes triangle areas, mitigating VNC-soft/hard discrepancies on
+irregular tessellations").
 """
 
 from __future__ import annotations
@@ -16,6 +25,7 @@ import numpy as np
 import warp as wp
 
 from vnc_warp._device import get_device
+from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _k
 from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
 from vnc_warp.sdf import choose_band_factor, sample_grid, sign_flag, warp_mesh
@@ -52,6 +62,33 @@ _MIN_ABS_SDF = 1.0e-3
 # SDF is zero and marching cubes emits zero-area triangles.
 _GRIDS = (((0.31, 0.17, 0.43), 1.0), ((0.62, 0.84, 0.29), 1.0), ((0.77, 0.53, 0.61), 1.5))
 _AGGRESSIVENESS = (7.0, 5.0, 3.0)
+# Isotropic regularization (see _Regularizer): edges shorter / longer than these fractions of the
+# target length are collapsed / split (the thresholds of Botsch and Kobbelt's isotropic remeshing), ...
+_SHORT_EDGE = 0.8
+_LONG_EDGE = 4.0 / 3.0
+# ... a collapse never makes a vertex of more edges than this, ...
+_MAX_VALENCE = 10
+# ... and no operation turns a face by more than acos(this) (60 degrees), unless the face then agrees
+# that well with the normal of the vertices' rings, nor bends an edge to a dihedral angle sharper than
+# that unless it already was: no fold-overs.
+_MIN_COS_TURN = 0.5
+# Features stay: a vertex whose faces' normals spread (|sum n_f| < this * sum |n_f|: a tip, a corner,
+# a crease, a part thinner than two edges) is not moved by the relaxation, and an edge whose two faces
+# meet at cos < this (a crease) is not flipped. At about 37 degrees, only features sharper than the
+# target edge length can resolve are held.
+_FEATURE_COS = 0.8
+# Collapses need a flatter neighbourhood than a ring this curved (|sum n_f| >= this * sum |n_f| over
+# the faces of both ends), so tips are not collapsed away.
+_COLLAPSE_FLAT_COS = 0.5
+# Bound on the steps of a walk around a vertex; a surface with a busier vertex is not regularized.
+_MAX_RING = 64
+# An unclaimed vertex (priorities are below 2^30).
+_NO_LOCK = 2**31 - 1
+# Flips draw their priorities from another stream than relocations.
+_FLIP_SEED = 1 << 20
+# Relaxation moves that fold or crease an edge (neighbours moving at once) are undone; a second pass
+# catches the rare edge creased by the first undo.
+_REVERT_PASSES = 2
 
 
 def _first(idx: np.ndarray, k: int = 5) -> str:
@@ -313,8 +350,179 @@ def _area_and_centroid(v: np.ndarray, f: np.ndarray) -> tuple[float, np.ndarray]
     return float(area.sum()), (area[:, None] * v[f].mean(1)).sum(0) / area.sum()
 
 
-def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name: str):
-    """Orient outward, scale to ``area`` (if given) and check a decimated surface.
+class _Regularizer:
+    """Isotropic regularization of decimated surfaces on the marching-cubes surface they came from.
+
+    Each iteration runs, as Warp kernels (``vnc_warp.kernels.remesh``) on arrays allocated once per
+    call, with no host round trip:
+
+    1. one round of *relocations*: edges shorter than 4/5 of the target length ``L`` are collapsed
+       into their midpoints, and as many edges longer than 4/3 ``L`` are split at theirs, reusing the
+       vertex and the two faces each collapse frees, so the vertex and face counts never change.
+       Pairing collapses with splits anywhere on the surface moves vertices from dense regions to
+       sparse ones in one step; smoothing alone is a diffusion that would need hundreds of sweeps to
+       even out the density across a shape, and uniform density is what VNC-soft needs;
+    2. one round of edge flips that lower the deviation of valences from 6;
+    3. one sweep of tangential relaxation toward the area-weighted centroid of the one-ring,
+       followed by projection onto the marching-cubes surface (``wp.mesh_query_point_no_sign``).
+
+    After the last iteration every vertex moves along its normal by minus the mean distance of its
+    faces' centroids from the marching-cubes surface: projected vertices make every face a chord
+    under a convex surface, which would lose area (2.4% on the armadillo) and make ``keep_area``
+    inflate the whole shape.
+
+    ``L = sqrt(4 A / (sqrt(3) F))`` is the edge of an equilateral triangle of the mean face area.
+    The connectivity changes every round, so one-rings are walked on a half-edge structure (built
+    once with NumPy) rather than read from a fixed adjacency list. Operations of one round run in
+    parallel on an independent set; collapses keep the link condition (so the genus); no operation
+    folds a face; tips and creases are held (``_FEATURE_COS``, ``_COLLAPSE_FLAT_COS``).
+    """
+
+    def __init__(self, v_mc: np.ndarray, f_mc: np.ndarray, device):
+        f_mc = np.asarray(f_mc, dtype=np.int32)
+        # the projection test compares face normals with vertex normals: wind the target outward too
+        if np.einsum("ij,ij->i", v_mc[f_mc[:, 0]], np.cross(v_mc[f_mc[:, 1]], v_mc[f_mc[:, 2]])).sum() < 0.0:
+            f_mc = f_mc[:, ::-1]
+        self.device = device
+        self.surface = wp.Mesh(points=wp.array(v_mc, dtype=wp.vec3, device=device),
+                               indices=wp.array(np.ascontiguousarray(f_mc).reshape(-1), dtype=wp.int32, device=device))
+
+    def __call__(self, v: np.ndarray, f: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+        """Regularized ``(v, f)``, same shapes; returned unchanged unless the surface is a closed
+        manifold (then its validation names the problem)."""
+        state = _HalfEdgeSurface.build(v, f, self.device)
+        if state is None:
+            return v, f
+        for it in range(iterations):
+            state.relocate(it)
+            state.flip(it)
+            state.relax(self.surface)
+        state.straddle(self.surface)
+        return state.x.numpy().astype(np.float64), state.tri.numpy().reshape(-1, 3).astype(np.int64)
+
+
+class _HalfEdgeSurface:
+    """A closed manifold surface as half-edges on one device (layout: ``vnc_warp.kernels.remesh``), with
+    every work array of the regularization allocated once; the methods only launch kernels."""
+
+    def __init__(self, v: np.ndarray, f: np.ndarray, twin: np.ndarray, out_he: np.ndarray, device):
+        nv, self.num_faces, self.num_he = v.shape[0], f.shape[0], 3 * f.shape[0]
+        self.device = device
+        self.x = wp.array(v, dtype=wp.vec3, device=device)
+        self.x_next = wp.empty_like(self.x)
+        self.tri = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device)
+        self.twin = wp.array(twin, dtype=wp.int32, device=device)
+        self.out_he = wp.array(out_he, dtype=wp.int32, device=device)
+        self.valence = wp.empty(nv, dtype=wp.int32, device=device)
+        self.lock = wp.empty(nv, dtype=wp.int32, device=device)
+        self.revert = wp.zeros(nv, dtype=wp.int32, device=device)
+        self.kind = wp.empty(self.num_he, dtype=wp.int32, device=device)
+        self.num_kind = wp.zeros(2, dtype=wp.int32, device=device)
+        self.winners = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
+        self.offsets = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
+        self.lists = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
+        self.counts = [wp.zeros(1, dtype=wp.int32, device=device) for _ in range(2)]
+        self.offset = wp.empty(self.num_faces, dtype=wp.float32, device=device)
+        area, _ = _area_and_centroid(np.asarray(v, dtype=np.float64), f)
+        self.length = float(np.sqrt(4.0 * area / (np.sqrt(3.0) * f.shape[0])))
+
+    @classmethod
+    def build(cls, v: np.ndarray, f: np.ndarray, device) -> _HalfEdgeSurface | None:
+        """The surface, or None unless every edge has exactly two opposite half-edges and every vertex
+        one fan of faces."""
+        nv = v.shape[0]
+        a = f.reshape(-1).astype(np.int64)
+        b = np.roll(f, -1, axis=1).reshape(-1).astype(np.int64)
+        key = a * nv + b
+        order = np.argsort(key)
+        sorted_key = key[order]
+        if np.any(sorted_key[1:] == sorted_key[:-1]):
+            return None
+        reverse = b * nv + a
+        pos = np.minimum(np.searchsorted(sorted_key, reverse), key.size - 1)
+        if not np.array_equal(sorted_key[pos], reverse):
+            return None
+        out_he = np.full(nv, -1, dtype=np.int32)
+        out_he[a] = np.arange(a.size, dtype=np.int32)
+        state = cls(v, f, order[pos].astype(np.int32), out_he, device)
+        state._count_valence()
+        # a vertex whose faces form several fans is not a disk: the walk around it misses faces
+        if not np.array_equal(state.valence.numpy(), np.bincount(a, minlength=nv)):
+            return None
+        return state
+
+    def _count_valence(self):
+        wp.launch(_kr.ring_size, dim=self.valence.shape[0], inputs=[self.tri, self.twin, self.out_he, _MAX_RING],
+                  outputs=[self.valence], device=self.device)
+
+    def relocate(self, it: int):
+        """One round of paired collapses and splits (``it`` seeds the priorities)."""
+        dev, n = self.device, self.num_he
+        self._count_valence()
+        self.num_kind.zero_()
+        wp.launch(_kr.mark_relocations, dim=n,
+                  inputs=[self.x, self.tri, self.twin, self.out_he, self.valence, _SHORT_EDGE * self.length,
+                          _LONG_EDGE * self.length, _MAX_VALENCE, _MIN_COS_TURN, _COLLAPSE_FLAT_COS, _MAX_RING],
+                  outputs=[self.kind, self.num_kind], device=dev)
+        for phase in range(2):
+            self.lock.fill_(_NO_LOCK)
+            if phase == 1:
+                wp.launch(_kr.reserve_relocations, dim=n, inputs=[self.tri, self.twin, *self.winners, _MAX_RING],
+                          outputs=[self.lock], device=dev)
+            wp.launch(_kr.claim_relocations, dim=n,
+                      inputs=[self.tri, self.twin, self.kind, self.num_kind, phase, it, _MAX_RING],
+                      outputs=[self.lock], device=dev)
+            wp.launch(_kr.relocation_winners, dim=n,
+                      inputs=[self.tri, self.twin, self.kind, self.num_kind, phase, it, _MAX_RING, self.lock],
+                      outputs=self.winners, device=dev)
+        for k in range(2):
+            wp.utils.array_scan(self.winners[k], self.offsets[k], inclusive=False)
+            wp.launch(_kr.compact, dim=n, inputs=[self.winners[k], self.offsets[k]],
+                      outputs=[self.lists[k], self.counts[k]], device=dev)
+        wp.launch(_kr.apply_relocations, dim=n // 2,
+                  inputs=[self.x, self.tri, self.twin, self.out_he, self.lists[0], self.counts[0], self.lists[1],
+                          self.counts[1], _MAX_RING], device=dev)
+
+    def flip(self, it: int):
+        """One round of valence-improving edge flips."""
+        self._count_valence()
+        self.lock.fill_(_NO_LOCK)
+        seed = _FLIP_SEED + it
+        wp.launch(_kr.mark_flips, dim=self.num_he,
+                  inputs=[self.x, self.tri, self.twin, self.out_he, self.valence, _MIN_COS_TURN, _FEATURE_COS,
+                          _MAX_RING, seed], outputs=[self.kind, self.lock], device=self.device)
+        wp.launch(_kr.apply_flips, dim=self.num_he,
+                  inputs=[self.tri, self.twin, self.out_he, self.kind, self.lock, seed], device=self.device)
+
+    def relax(self, surface: wp.Mesh):
+        """One sweep of tangential relaxation and projection onto ``surface``; moves that fold or crease
+        an edge are undone."""
+        dev = self.device
+        wp.launch(_kr.tangential_relax, dim=self.x.shape[0],
+                  inputs=[surface.id, self.x, self.tri, self.twin, self.out_he, self.length, _MIN_COS_TURN,
+                          _FEATURE_COS, _MAX_RING], outputs=[self.x_next], device=dev)
+        for _ in range(_REVERT_PASSES):
+            wp.launch(_kr.mark_sharpened_edges, dim=self.num_he, inputs=[self.x, self.x_next, self.tri, self.twin,
+                                                                         _MIN_COS_TURN],
+                      outputs=[self.revert], device=dev)
+            wp.launch(_kr.revert_vertices, dim=self.x.shape[0], inputs=[self.x, self.revert], outputs=[self.x_next],
+                      device=dev)
+        self.x, self.x_next = self.x_next, self.x
+
+    def straddle(self, surface: wp.Mesh):
+        """Move vertices along their normals so faces straddle ``surface`` rather than cut under it."""
+        dev = self.device
+        wp.launch(_kr.face_offsets, dim=self.num_faces, inputs=[surface.id, self.x, self.tri, self.length],
+                  outputs=[self.offset], device=dev)
+        wp.launch(_kr.straddle, dim=self.x.shape[0], inputs=[self.x, self.tri, self.twin, self.out_he, self.offset,
+                                                             _MAX_RING], outputs=[self.x_next], device=dev)
+        self.x, self.x_next = self.x_next, self.x
+
+
+def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name: str,
+            regularizer: _Regularizer | None = None, iterations: int = 0):
+    """Orient outward, regularize (``iterations`` > 0), scale to ``area`` (if given) and check a
+    decimated surface.
 
     Returns:
         ``(mesh, None)`` when it is valid and within 2% of ``target`` faces, else ``(None, problem)``.
@@ -326,6 +534,9 @@ def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name:
         return None, f"surface area {current:.6g}"
     if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0.0:
         f = np.ascontiguousarray(f[:, ::-1])
+    if iterations > 0:
+        v, f = regularizer(v, f, iterations)
+        current, centroid = _area_and_centroid(v, f)
     if area is not None:
         v = centroid + (v - centroid) * np.sqrt(area / current)
     try:
@@ -338,14 +549,16 @@ def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name:
 
 
 def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = None, device=None,
-               keep_area: bool = True, sign: str = "winding", marching_cubes: str = "auto") -> Mesh:
+               keep_area: bool = True, sign: str = "winding", marching_cubes: str = "auto",
+               relax_iterations: int = 24) -> Mesh:
     """Rebuild a mesh as a clean closed surface of its signed distance (Algorithm 1, lines 2 and 7).
 
     Steps: signed distance on a narrow-band grid (:func:`vnc_warp.sdf.sample_grid`; inside/outside
     from the winding number, so an open scan still yields a closed surface), marching cubes, the
-    largest connected component, quadric decimation (fast-simplification) to ``faces``, and, with
-    ``keep_area``, a scale about the area centroid so the area equals the input's (Sec. 3.2 (3):
-    remeshing keeps face count and surface area). Decimation can flatten parts too thin for the face
+    largest connected component, quadric decimation (fast-simplification) to ``faces``, isotropic
+    regularization (``relax_iterations``, below) and, with ``keep_area``, a scale about the area
+    centroid so the area equals the input's (Sec. 3.2 (3): remeshing keeps face count and surface
+    area). Decimation can flatten parts too thin for the face
     budget: double-sided triangles are removed, and if the surface fails :func:`validate_surface`,
     edges and vertices pinched by the decimation are cut (one vertex copy per fan) and parts cut
     off are dropped. If it still fails, it is decimated again less aggressively, then on
@@ -364,25 +577,39 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
     clamped to 32-384 nodes along the longest bounding-box side. If marching cubes still yields
     fewer than 1.2x ``faces``, the spacing is refined and the grid resampled.
 
+    Isotropic regularization: quadric decimation leaves edge lengths varying by a factor of several
+    (coefficient of variation ~0.43 on Spot), which VNC-soft reads as curvature (see the module
+    docstring). Each of ``relax_iterations`` iterations pairs collapses of edges shorter than 4/5
+    of the target length with splits of edges longer than 4/3 of it (so vertex and face counts stay
+    exactly those of the decimation), flips edges toward valence 6, and moves every vertex
+    tangentially toward the area-weighted centroid of its one-ring, then back onto the
+    marching-cubes surface; finally vertices move along their normals so faces straddle that
+    surface instead of cutting under it. Tips, creases and parts thinner than two edges are held
+    (see :class:`_Regularizer`). Measured on Spot: edge-length variation 0.43 -> 0.11, 1st
+    percentile of the smallest face angle 3 -> 38 degrees; a remeshed sphere's total VNC-AUC drops
+    to 1.5x an icosphere's (from 4.5x). All Warp kernels on ``device``.
+
     Args:
         mesh: a :class:`~vnc_warp.mesh.Mesh`, or anything :func:`~vnc_warp.mesh.load_mesh` accepts;
             need not be watertight with ``sign="winding"``.
         faces: target face count; None means the input's. The output is within 2% of it.
         resolution: grid nodes along the longest bounding-box side; None chooses it (see above).
-        device: where the signed distances (and Warp marching cubes) run; None means Warp's
-            preferred device. Decimation and checks run on the host.
+        device: where the signed distances, Warp marching cubes and the regularization run; None
+            means Warp's preferred device. Decimation and checks run on the host.
         keep_area: scale the result about its area centroid to the input's surface area.
         sign: ``"winding"`` (default; open meshes too) or ``"normal"`` (faster, watertight input).
         marching_cubes: ``"skimage"``, ``"warp"`` (``warp.geometry.IsoSurfaceMarchingCubes``, on the
             grid's device) or ``"auto"``: Warp's on CUDA, scikit-image's on the CPU.
+        relax_iterations: iterations of the isotropic regularization; 0 returns the decimated
+            surface as it is (the behaviour before the regularization existed).
 
     Returns:
         A new :class:`~vnc_warp.mesh.Mesh` named ``"<name>:remeshed"``: watertight, manifold,
         outward, no degenerate faces.
 
     Raises:
-        ValueError: bad ``faces``, ``resolution``, ``sign`` or ``marching_cubes``; ``sign="normal"``
-            with an open mesh.
+        ValueError: bad ``faces``, ``resolution``, ``sign``, ``marching_cubes`` or
+            ``relax_iterations``; ``sign="normal"`` with an open mesh.
         MeshError: the input cannot be loaded, or no attempt produced a valid surface of the
             requested size (the message lists what went wrong in each attempt).
     """
@@ -400,6 +627,8 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
         raise ValueError(f"sdf_remesh: target face count must be at least 8, got {faces!r}")
     if resolution is not None and int(resolution) < 8:
         raise ValueError(f"sdf_remesh: resolution must be at least 8 nodes, got {resolution!r}")
+    if int(relax_iterations) != relax_iterations or relax_iterations < 0:
+        raise ValueError(f"sdf_remesh: relax_iterations must be a non-negative integer, got {relax_iterations!r}")
     dev = get_device(device)
     method = marching_cubes if marching_cubes != "auto" else ("warp" if dev.is_cuda else "skimage")
     wm = warp_mesh(m, dev, winding=bool(use_winding))
@@ -435,15 +664,18 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
             if resolution is not None:
                 break
             continue
+        regularizer = _Regularizer(v_mc, f_mc, dev) if relax_iterations else None
+        finish = dict(target=target, area=area_in if keep_area else None, name=f"{m.name}:remeshed",
+                      regularizer=regularizer, iterations=int(relax_iterations))
         for agg in _AGGRESSIVENESS:
             v, f = fast_simplification.simplify(v_mc, f_mc, target_count=target, agg=agg)
             f = _drop_double_faces(f)
-            out, problem = _finish(v, f, target, area_in if keep_area else None, f"{m.name}:remeshed")
+            out, problem = _finish(v, f, **finish)
             if problem is None:
                 return out
             # cut what the decimation pinched, drop parts it cut off, and check once more
             v, f = _largest_component(*_split_fans(v, f))
-            out, after_cut = _finish(v, f, target, area_in if keep_area else None, f"{m.name}:remeshed")
+            out, after_cut = _finish(v, f, **finish)
             if after_cut is None:
                 return out
             failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")

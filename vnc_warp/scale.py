@@ -3,13 +3,14 @@ and adaptive per-vertex scales (Eq. 6)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
 
 from vnc_warp.kernels import vnc as _k
 
+from . import _pairs
 from ._device import get_device
 from .mesh import Mesh
 from .operators import _midpoint_bvh, _positions, _segment_bvh, edge_fields
@@ -66,8 +67,11 @@ def _check_taus(taus) -> np.ndarray:
 
 
 def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None,
-                positions: wp.array | None = None) -> ScaleCurve:
+                positions: wp.array | None = None, strategy: str = "auto") -> ScaleCurve:
     """VNC-Scale curves ``C(v_k) = H(v_k, tau)`` at every scale, in one neighbour traversal.
+
+    Each traversal visits the pairs within the largest scale once and adds every pair to all the scales that
+    reach it, 16 scales at a time in registers (more than 16 scales take one traversal per 16).
 
     Args:
         mesh: the mesh.
@@ -76,6 +80,8 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
         kappa: cut-off ratio (``None`` allowed for "hard": unweighted).
         device: Warp device (defaults to ``positions.device`` when positions are given).
         positions: (V,) vec3 ``wp.array`` overriding ``mesh.vertices`` (e.g. a flow iterate on the GPU).
+        strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_warp.vnc_soft`); "auto" decides per
+            traversal from its largest scale.
 
     Returns:
         A :class:`ScaleCurve` with ``H`` of shape (S, V) and the global mean curve.
@@ -86,10 +92,27 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
         raise ValueError(f"variant must be 'soft' or 'hard', got {variant!r}")
     if variant == "soft" and not (kappa is not None and kappa > 0):
         raise ValueError(f"VNC-soft needs a positive kappa, got {kappa}")
+    if variant == "hard" and kappa is not None and not kappa > 0:
+        raise ValueError(f"kappa must be positive or None, got {kappa}")
+    _pairs.check_strategy(strategy)
     S, V = t.size, mesh.num_vertices
     x = _positions(mesh, positions, device)
     f = edge_fields(mesh, positions=x, device=device)
     taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
+    H = wp.empty((S, V), dtype=wp.float32, device=device)
+    if strategy == "bvh":
+        _scale_curve_bvh(x, f, taus_wp, variant, kappa, H)
+    else:
+        _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H)
+    mean = wp.zeros(S, dtype=wp.float32, device=device)
+    stride = min(V, 256)
+    wp.launch(_k.column_mean, dim=(S, stride), inputs=[H, stride, 1.0 / V], outputs=[mean], device=device)
+    return ScaleCurve(t, H, mean, variant)
+
+
+def _scale_curve_bvh(x, f, taus_wp, variant, kappa, H):
+    device = x.device
+    S, V = H.shape
     num = wp.zeros((S, V), dtype=wp.float32, device=device)
     den = wp.zeros((S, V), dtype=wp.float32, device=device)
     if variant == "soft":
@@ -101,11 +124,53 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
         k = 1.0e-6 if kappa is None else float(kappa)  # sigma = tau / 1e-6: w = 1 to float precision
         wp.launch(_k.ball_multiscale, dim=V, inputs=[x, taus_wp, k, bvh.id, x, f.edges, f.mid, f.angle],
                   outputs=[num, den], device=device)
-    H = wp.empty((S, V), dtype=wp.float32, device=device)
     wp.launch(_k.ratio2d, dim=(S, V), inputs=[num, den], outputs=[H], device=device)
-    mean = wp.zeros(S, dtype=wp.float32, device=device)
-    wp.launch(_k.column_mean, dim=(S, V), inputs=[H, 1.0 / V], outputs=[mean], device=device)
-    return ScaleCurve(t, H, mean, variant)
+
+
+def _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H):
+    device = x.device
+    S, V = H.shape
+    E = f.mid.shape[0]
+    soft = variant == "soft"
+    b = _pairs.bounds(x, wp.full(V, np.float32(t[-1]), dtype=wp.float32, device=device), None if soft else f.length)
+    pad = 0.0 if soft else 0.5 * b.lmax
+    k = 0.0 if kappa is None else float(kappa)  # kappa = 0: unweighted scales
+    # 32 sums per scale chunk and thread: fewer splits than a single-scale traversal
+    splits = min(_pairs.launch_shape(device, V)[1], 4)
+    for offset in range(0, S, 16):
+        tmax = float(t[min(offset + 16, S) - 1])
+        concrete = _pairs.resolve(strategy, device, b, tmax + pad, V, E)
+        radius = wp.full(V, np.float32(tmax), dtype=wp.float32, device=device)
+        chunk = replace(b, rmax=tmax, rmean=tmax)
+        if soft:
+            plans = [_pairs.plan(x, radius, f.mid, chunk, concrete, tmax, splits=splits)]
+        else:
+            plans = _pairs.ball_plans(x, radius, f.mid, f.length, chunk, concrete, splits=splits)
+        groups = plans[0][1]
+        rows = 16 * len(plans) * groups.splits
+        part_num = wp.empty((rows, groups.padded), dtype=wp.float32, device=device)
+        part_den = wp.empty((rows, groups.padded), dtype=wp.float32, device=device)
+        for i, (cells, grp) in enumerate(plans):
+            if soft:
+                pos = wp.empty(E, dtype=wp.vec4, device=device)
+                val = wp.empty(E, dtype=wp.vec4, device=device)
+                wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
+                          outputs=[pos, val], device=device)
+                wp.launch(_k.soft_cells_multiscale, dim=grp.dim,
+                          inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
+                          outputs=[part_num, part_den], device=device)
+            else:
+                seg_a = wp.empty(E, dtype=wp.vec4, device=device)
+                seg_l = wp.empty(E, dtype=wp.vec4, device=device)
+                val = wp.empty(E, dtype=wp.vec4, device=device)
+                wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
+                          outputs=[seg_a, seg_l, val], device=device)
+                wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
+                          inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_a, seg_l, val, grp.splits,
+                                  i * grp.splits],
+                          outputs=[part_num, part_den], device=device)
+        wp.launch(_k.reduce_multiscale, dim=(min(16, S - offset), V), inputs=[groups.order, part_num, part_den, offset],
+                  outputs=[H], device=device)
 
 
 def _curve_taus(curve: ScaleCurve, taus) -> wp.array:

@@ -1,0 +1,1 @@
+"""Benchmarks of vnc-warp. ``python -m bench.vnc --help`` runs the VNC operator benchmark."""

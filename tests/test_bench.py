@@ -1,0 +1,87 @@
+"""Smoke test of the benchmark harness (``python -m bench.vnc --quick`` on the CPU device): the JSON it writes is
+complete and self-consistent, the dense PyTorch Eq. (3) agrees with vnc_soft, and failing rows are reported, not
+raised. No timing is asserted."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bench import vnc as bench
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "bench.json"
+    doc, worker = bench.main(["--device", "cpu", "--quick", "--out", str(out), "--max-minutes", "5"])
+    return out, doc, worker
+
+
+def test_quick_run_writes_complete_json(quick_run):
+    """The JSON on disk is the returned document and names the device, the versions, the meshes and every row."""
+    out, doc, worker = quick_run
+    assert worker is None or not worker.is_alive()
+    on_disk = json.loads(out.read_text())
+    assert on_disk["rows"] == json.loads(json.dumps(doc["rows"]))
+    assert on_disk["schema"] == "vnc-warp-bench/1"
+    assert on_disk["device"]["kind"] == "cpu" and on_disk["device"]["name"]
+    assert {"warp", "torch", "trimesh", "numpy", "vnc_warp", "python"} <= set(on_disk["versions"])
+    assert "python -m bench.vnc" in on_disk["command"] and on_disk["date"]
+    (mesh,) = on_disk["meshes"]
+    assert mesh["vertices"] > 1000 and mesh["interior_edges"] > mesh["vertices"]
+    sections = {r["section"] for r in on_disk["rows"]}
+    assert sections == {"operator", "scale", "eq1", "flow", "trajectory"}
+    assert len(on_disk["goals"]) == 7 and all({"goal", "target", "measured", "met"} <= set(g) for g in on_disk["goals"])
+    md = out.with_suffix(".md").read_text()
+    assert on_disk["command"] in md and "| goal |" in md
+
+
+def test_quick_run_rows_are_consistent(quick_run):
+    """Every row is ok or says why not; medians are positive and bounded by min/max; ratios are the quotient of the
+    two medians they name; the package's own rows ran at every scale."""
+    _, doc, _ = quick_run
+    rows = doc["rows"]
+    by_key = {(r["mesh"], r["tau_label"], f"{r['name']}[{r['variant']}]"): r for r in rows}
+    for r in rows:
+        assert r["status"] in ("ok", "skipped"), (r["name"], r["variant"], r["note"])
+        if r["status"] != "ok":
+            assert r["note"]
+            continue
+        assert r["median_ms"] > 0 and r["min_ms"] <= r["median_ms"] <= r["max_ms"]
+        if r["ratio"] is not None:
+            ref = by_key[(r["mesh"], r["tau_label"], r["ratio_to"])]
+            assert math.isclose(r["ratio"], r["median_ms"] / ref["median_ms"], rel_tol=1e-9)
+    soft = [r for r in rows if r["name"] == "vnc_soft" and r["variant"] == "auto"]
+    assert [r["tau_label"] for r in soft] == [t[0] for t in bench.QUICK_TAUS]
+    assert all(r["status"] == "ok" and r["extra"]["chosen"] in ("grid", "dense") for r in soft)
+    traj = next(r for r in rows if r["section"] == "trajectory")
+    assert traj["status"] == "ok" and traj["extra"]["stages_done"] == traj["extra"]["stages"] == 2
+
+
+def test_dense_torch_row_agrees_with_vnc_soft(quick_run):
+    """The blocked dense PyTorch Eq. (3) (the paper's matrix form) gives the same H as vnc_soft at every scale, and
+    Eq. (1) from the package equals trimesh's measure on the same points."""
+    _, doc, _ = quick_run
+    torch_rows = [r for r in doc["rows"] if r["name"] == "torch_dense_eq3" and r["status"] == "ok"]
+    assert len(torch_rows) == len(bench.QUICK_TAUS)
+    for r in torch_rows:
+        assert r["extra"]["max_abs_dH"] < 1e-3 * max(r["extra"]["H_std"], 1e-3), r
+    eq1 = [r for r in doc["rows"] if r["name"] == "trimesh_eq1"]
+    assert eq1 and all(r["status"] == "ok" and r["extra"]["max_rel_diff"] < 1e-4 for r in eq1)
+
+
+def test_failing_row_is_reported_not_raised(tmp_path):
+    """A row whose function raises is recorded as an error with its message; a skipped row keeps its reason."""
+    args = bench.parse_args(["--device", "cpu", "--quick", "--out", str(tmp_path / "b.json")])
+    b = bench.Bench(args)
+
+    def boom():
+        raise RuntimeError("kernel exploded")
+
+    row = b.run(bench.Row(section="operator", mesh="m", name="broken", variant="x"), boom)
+    assert row.status == "error" and "kernel exploded" in row.note and "traceback" in row.extra
+    row = b.run(bench.Row(section="operator", mesh="m", name="huge", variant="x"), boom, skip="too many pairs")
+    assert row.status == "skipped" and row.note == "too many pairs"
+    ok = b.run(bench.Row(section="operator", mesh="m", name="fine", variant="x"), lambda: np.zeros(3))
+    assert ok.status == "ok" and ok.repeats >= 1

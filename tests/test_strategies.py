@@ -1,0 +1,185 @@
+"""The pair-traversal strategies of the VNC operator ("grid", "dense", "bvh", "auto") give the same results,
+equal to float64 dense references, for values, scale curves and gradients; the CUDA launch shape (warp-sized
+query groups, candidates split over several threads) is exercised on the CPU device too."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+import warp as wp
+from conftest import real_mesh_path
+from reference import dense_ball_sums, dense_soft
+
+import vnc_warp as vw
+from vnc_warp import _pairs
+
+STRATEGIES = ["grid", "dense", "bvh"]
+
+
+def _bumpy_sphere(subdiv=3, seed=0):
+    tm = trimesh.creation.icosphere(subdiv, radius=1.0)
+    rng = np.random.default_rng(seed)
+    tm.vertices *= (1.0 + 0.05 * rng.standard_normal(len(tm.vertices)))[:, None]
+    return vw.load_mesh(tm)
+
+
+@pytest.fixture
+def cuda_launch_shape(monkeypatch):
+    """Groups of 32 queries split over 3 threads each, as on a GPU, on whatever device runs."""
+    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count: (32, 3))
+
+
+def _taus(mesh):
+    rng = np.random.default_rng(4)
+    return {
+        "small": 2.5 * mesh.mean_edge_length,
+        "per-vertex": mesh.mean_edge_length * rng.uniform(1.5, 12.0, mesh.num_vertices),
+        "whole mesh": 1.2 * mesh.bbox_diagonal,
+    }
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_soft_matches_dense_float64_every_strategy(strategy, device):
+    """Eq. (3) from every strategy equals the float64 dense (V x E) reference at a small, a per-vertex and a
+    whole-mesh scale."""
+    mesh = _bumpy_sphere()
+    v64 = torch.tensor(mesh.vertices, dtype=torch.float64)
+    for name, tau in _taus(mesh).items():
+        H, n = vw.vnc_soft(mesh, tau, device=device, strategy=strategy)
+        Hr, nr = dense_soft(v64, mesh.faces, tau)
+        np.testing.assert_allclose(H.numpy(), Hr.numpy(), rtol=1e-4, atol=1e-5 * np.abs(Hr.numpy()).max(),
+                                   err_msg=f"{strategy}, {name}")
+        np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"{strategy}, {name}")
+
+
+def test_strategies_agree_with_cuda_launch_shape(cuda_launch_shape, device):
+    """With warp-sized groups and split candidates (the CUDA shape, V not a multiple of 32), "grid" and "dense"
+    equal the per-thread BVH for VNC-soft, VNC-hard and Eq. (1)."""
+    mesh = _bumpy_sphere()
+    assert mesh.num_vertices % 32 != 0
+    for name, tau in _taus(mesh).items():
+        Hb, nb = vw.vnc_soft(mesh, tau, device=device, strategy="bvh")
+        hb = vw.vnc_hard(mesh, tau, device=device, strategy="bvh")[0].numpy()
+        ib = vw.integrated_mean_curvature(mesh, tau, device=device, strategy="bvh").numpy()
+        for s in ("grid", "dense"):
+            H, n = vw.vnc_soft(mesh, tau, device=device, strategy=s)
+            np.testing.assert_allclose(H.numpy(), Hb.numpy(), atol=2e-6, err_msg=f"soft {s}, {name}")
+            np.testing.assert_allclose(n.numpy(), nb.numpy(), atol=5e-5, err_msg=f"soft {s}, {name}")
+            h = vw.vnc_hard(mesh, tau, device=device, strategy=s)[0].numpy()
+            np.testing.assert_allclose(h, hb, atol=2e-6, err_msg=f"hard {s}, {name}")
+            i = vw.integrated_mean_curvature(mesh, tau, device=device, strategy=s).numpy()
+            np.testing.assert_allclose(i, ib, rtol=1e-5, atol=1e-5 * np.abs(ib).max(), err_msg=f"Eq. 1 {s}, {name}")
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+@pytest.mark.parametrize("kappa", [6.0, None])
+def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
+    """Eq. (2) from every strategy equals the float64 dense reference on trimesh's exact segment/ball lengths."""
+    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    idx = np.arange(0, mesh.num_vertices, 11)
+    for tau in (3.0 * mesh.mean_edge_length, 0.6 * mesh.bbox_diagonal):
+        H = vw.vnc_hard(mesh, tau, kappa=kappa, device=device, strategy=strategy)[0].numpy()
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices[idx], tau, kappa)
+        np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6)
+
+
+def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, device):
+    """A mesh whose edges span 0.1 to 3 units (a cylinder's sides and rings) is traversed by the ball kernels in
+    edge-length tiers; Eqs. (1)-(2) (unweighted, where a long edge far from its midpoint still counts) equal the
+    dense float64 reference for every strategy."""
+    tm = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=48)
+    mesh = vw.load_mesh(tm)
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    tau = wp.full(mesh.num_vertices, 0.4, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, tau, f.length)
+    assert len(_pairs.ball_plans(x, tau, f.mid, f.length, b, "grid")) > 1
+    for r in (0.4, 1.5):
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
+        for s in STRATEGIES:
+            H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy=s)[0].numpy()
+            np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"{s}, r={r}")
+            got = vw.integrated_mean_curvature(mesh, r, device=device, strategy=s).numpy()
+            np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1 {s}, r={r}")
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_integrated_mean_curvature_every_strategy(strategy, device):
+    """Eq. (1) at off-surface centres with per-point radii (some centres outside the mesh's box) equals trimesh
+    for every strategy."""
+    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    tm = mesh.to_trimesh()
+    rng = np.random.default_rng(5)
+    pts = mesh.vertices[rng.choice(mesh.num_vertices, 30, replace=False)] * 1.05
+    radii = mesh.mean_edge_length * rng.uniform(1.0, 30.0, 30)
+    got = vw.integrated_mean_curvature(mesh, radii, pts, device=device, strategy=strategy).numpy()
+    ref = np.array([trimesh.curvature.discrete_mean_curvature_measure(tm, p[None], r)[0] for p, r in zip(pts, radii)])
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=2e-5 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("variant,kappa", [("soft", 6.0), ("hard", 6.0), ("hard", None)])
+def test_scale_curve_every_strategy(variant, kappa, cuda_launch_shape, device):
+    """One-traversal scale curves (18 scales: a chunk of 16 and one of 2) equal separate single-scale BVH calls
+    for every strategy, with the CUDA launch shape."""
+    mesh = _bumpy_sphere()
+    taus = vw.default_scales(mesh, 18)
+    op = vw.vnc_soft if variant == "soft" else vw.vnc_hard
+    ref = np.stack([op(mesh, t, kappa=kappa, device=device, strategy="bvh")[0].numpy() for t in taus])
+    for s in ("grid", "dense", "bvh", "auto"):
+        curve = vw.scale_curve(mesh, taus, variant, kappa=kappa, device=device, strategy=s)
+        np.testing.assert_allclose(curve.H.numpy(), ref, atol=2e-6, err_msg=s)
+        np.testing.assert_allclose(curve.mean.numpy(), ref.mean(1), rtol=1e-5, atol=1e-7, err_msg=s)
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_gradient_every_strategy(strategy, cuda_launch_shape, device):
+    """The tape gradient of sum(wH H) + sum(wn . n) through each strategy's forward and backward equals autograd
+    through the float64 dense reference (scalar and per-vertex scales, CUDA launch shape)."""
+    mesh = _bumpy_sphere(2, seed=3)
+    V = mesh.num_vertices
+    rng = np.random.default_rng(6)
+    wH = rng.standard_normal(V)
+    wn = rng.standard_normal((V, 3))
+    for tau in (0.5, rng.uniform(0.3, 1.2, V), 5.0):
+        x = wp.array(mesh.vertices, dtype=wp.vec3, device=device, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            H, n = vw.vnc_soft(mesh, tau, positions=x, tape=tape, strategy=strategy)
+        tape.backward(grads={H: wp.array(wH.astype(np.float32), device=device),
+                             n: wp.array(wn.astype(np.float32), dtype=wp.vec3, device=device)})
+        v64 = torch.tensor(mesh.vertices, dtype=torch.float64, requires_grad=True)
+        H64, n64 = dense_soft(v64, mesh.faces, tau)
+        ((H64 * torch.as_tensor(wH)).sum() + (n64 * torch.as_tensor(wn)).sum()).backward()
+        g, g64 = x.grad.numpy(), v64.grad.numpy()
+        assert np.abs(g - g64).max() < 1e-3 * np.abs(g64).max(), (strategy, np.abs(g - g64).max())
+
+
+def test_cell_index_matches_numpy(device):
+    """The cell list (sorted sources and first[] offsets) equals a NumPy sort of the same cell indices."""
+    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    pts = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    b = _pairs.bounds(pts, wp.full(mesh.num_vertices, 0.1, dtype=wp.float32, device=device))
+    h = 3.0 * mesh.mean_edge_length
+    cells = _pairs.build_cells(pts, b, h)
+    dims = np.array([cells.dims[0], cells.dims[1], cells.dims[2]])
+    c = np.clip(np.floor((mesh.vertices.astype(np.float32) - b.lo.astype(np.float32)) * np.float32(1.0 / h)), 0,
+                dims - 1).astype(np.int64)
+    key = c[:, 0] + dims[0] * (c[:, 1] + dims[1] * c[:, 2])
+    order = cells.order.numpy()
+    np.testing.assert_array_equal(key[order], np.sort(key))
+    np.testing.assert_array_equal(np.sort(order), np.arange(mesh.num_vertices))
+    first = cells.first.numpy()
+    np.testing.assert_array_equal(first, np.searchsorted(np.sort(key), np.arange(dims.prod() + 1)))
+
+
+def test_auto_choice_and_bad_strategy(device):
+    """"auto" prunes with the grid at small scales and reads all pairs when every ball covers the mesh; an unknown
+    strategy is rejected with the list of valid ones."""
+    mesh = vw.load_mesh(real_mesh_path("fandisk.obj"))
+    assert vw.choose_strategy(mesh, 3.0 * mesh.mean_edge_length, device=device) == "grid"
+    assert vw.choose_strategy(mesh, 3.0 * mesh.mean_edge_length, variant="hard", device=device) == "grid"
+    assert vw.choose_strategy(mesh, 2.0 * mesh.bbox_diagonal, device=device) == "dense"
+    with pytest.raises(ValueError, match="grid, dense"):
+        vw.vnc_soft(mesh, 1.0, device=device, strategy="kd-tree")
+    with pytest.raises(ValueError, match="grid, dense"):
+        vw.scale_curve(mesh, vw.default_scales(mesh, 4), device=device, strategy="octree")

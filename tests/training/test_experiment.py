@@ -1,0 +1,185 @@
+"""The end-to-end experiment (vnc_warp.training.experiment, ``vnc-warp experiment``) in a reduced cpu-smoke form."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from conftest import real_mesh_path
+from vnc_warp.cli import main
+from vnc_warp.training.experiment import ExperimentConfig, load_experiment, preset, run_config, run_experiment
+
+TIMES = (0.0, 0.5, 1.0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Tiny models run fastest on one thread; more threads oversubscribe a shared small CPU."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _reduced() -> ExperimentConfig:
+    """cpu-smoke with fewer shapes, stages, steps and samples (fixed step counts: a deterministic run)."""
+    cfg = preset("cpu-smoke")
+    cfg.num_shapes, cfg.holdout_shapes, cfg.stages = 3, 1, 2
+    cfg.train_meshes, cfg.holdout_meshes, cfg.distill_mesh = ("spot_lowres.obj",), (), "spot_lowres.obj"
+    for kind, steps in (("cvae1", 120), ("vae", 120), ("cvae2", 60)):
+        section = getattr(cfg, kind)
+        section.optim = dataclasses.replace(section.optim, total_steps=steps)
+    cfg.times, cfg.resolution, cfg.n_points, cfg.n_emd, cfg.render_size = TIMES, 32, 2000, 200, 48
+    cfg.validate()
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    """One reduced run: 2 procedural training shapes, 1 held out, Spot trained on and distilled."""
+    meshes = real_mesh_path("spot_lowres.obj").parent
+    root = tmp_path_factory.mktemp("experiment")
+    config = _reduced()
+    results = run_experiment(config, out_dir=root / "out", work_dir=root / "work", meshes_dir=meshes, device="cpu",
+                             progress=False, log=lambda msg: None)
+    return config, root, meshes, results
+
+
+def test_results_hold_both_rows_with_finite_metrics(experiment):
+    """results.json holds C-VAE-I and the latent-interpolation baseline on the held-out trajectory and
+    C-VAE-II, C-VAE-I and the baseline on the distilled one; every scored entry is finite and positive,
+    every row scores at least one t, and the markdown lists every row."""
+    config, root, _, results = experiment
+    on_disk = json.loads((root / "out" / "results.json").read_text())
+    assert on_disk["evaluation"]["groups"].keys() == results["evaluation"]["groups"].keys()
+    groups = results["evaluation"]["groups"]
+    assert set(groups) == {"held-out procedural", "distilled: spot_lowres"}
+    assert list(groups["held-out procedural"]) == ["cvae1", "baseline"]
+    assert list(groups["distilled: spot_lowres"]) == ["cvae2", "cvae1", "baseline"]
+    markdown = (root / "out" / "results.md").read_text()
+    for rows in groups.values():
+        for method, row in rows.items():
+            assert [r["t"] for r in row["per_t"]] == sorted(TIMES, reverse=True)
+            assert row["failed"] < len(TIMES), (method, row)
+            for r in row["per_t"]:
+                if r["failed"] == 0:
+                    assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("cd_x1e4", "emd_x1e2", "nce")), r
+    for label in ("C-VAE-I", "C-VAE-II", "latent interp. (VAE)", "Latent anatomy", "samples/s"):
+        assert label in markdown
+    for kind in ("cvae1", "vae", "cvae2"):
+        tr = results["training"][kind]
+        assert tr["samples_per_s"] > 0 and math.isfinite(tr["final"]["loss"])
+        assert tr["steps"] == getattr(config, kind).optim.total_steps
+    assert results["training"]["vae"]["parameters"]["total"] < results["training"]["cvae1"]["parameters"]["total"]
+    anatomy = results["latent_anatomy"]["cvae1"]
+    assert anatomy["n"] == config.stages + 1 and math.isfinite(anatomy["pc1_t_abs_pearson"])
+    pngs = sorted(p.name for p in (root / "out").glob("*.png"))
+    assert pngs == ["compare_family0_0002.png", "compare_spot_lowres.png", "fig11_latent_space.png",
+                    "fig9b_cvae1_family0_0002.png", "fig9b_cvae2_spot_lowres.png"]
+
+
+def test_rerun_skips_finished_stages(experiment):
+    """A second run on the same work folder trains, predicts and scores nothing again: same steps, same
+    scores, and flows and training take a fraction of the first run's time."""
+    config, root, meshes, first = experiment
+    second = run_experiment(config, out_dir=root / "out2", work_dir=root / "work", meshes_dir=meshes, device="cpu",
+                            progress=False, log=lambda msg: None)
+    scores = [json.loads((root / out / "results.json").read_text())["evaluation"]["groups"] for out in ("out", "out2")]
+    assert scores[0] == scores[1]
+    steps = [{k: v["steps"] for k, v in run["training"].items()} for run in (first, second)]
+    assert steps[0] == steps[1]
+    assert all(f["status"] == "skipped (done)" for f in second["flows"].values())
+    slow = ("flows", "train_cvae1", "train_vae", "train_cvae2")
+    assert sum(second["timings_s"][k] for k in slow) < 0.2 * sum(first["timings_s"][k] for k in slow)
+    other = dataclasses.replace(config, num_shapes=4)
+    with pytest.raises(ValueError, match="num_shapes"):
+        run_experiment(other, out_dir=root / "out3", work_dir=root / "work", meshes_dir=meshes, device="cpu",
+                       progress=False, log=lambda msg: None)
+
+
+def test_evaluate_command_with_baseline(experiment, tmp_path):
+    """`vnc-warp evaluate --baseline VAE` scores the given predictions and the latent interpolation of the
+    VAE on the same trajectory and times; its baseline equals the experiment's own baseline scores."""
+    config, root, _, results = experiment
+    work = root / "work"
+    out = tmp_path / "eval.json"
+    rc = main(["evaluate", "--pred", str(work / "pred" / "cvae1" / "family0_0002"), "--gt",
+               str(work / "traj" / "family0_0002"), "--baseline", str(work / "runs" / "vae"), "--baseline-out",
+               str(tmp_path / "baseline"), "--resolution", str(config.resolution), "--n-points", str(config.n_points),
+               "--n-emd", str(config.n_emd), "--device", "cpu", "--out", str(out)])
+    report = json.loads(out.read_text())
+    assert rc == (1 if report["failed"] or report["baseline"]["failed"] else 0)
+    assert [e["t"] for e in report["baseline"]["per_t"]] == [e["t"] for e in report["per_t"]] == sorted(TIMES)[::-1]
+    own = results["evaluation"]["per_trajectory"]["baseline"]["family0_0002"]["per_t"]
+    for mine, theirs in zip(report["baseline"]["per_t"], own):
+        assert mine.get("cd_x1e4") == pytest.approx(theirs.get("cd_x1e4"), rel=1e-9)
+
+
+def test_presets_and_json_overrides(tmp_path):
+    """Presets validate; a JSON file overrides a preset deeply; the VAE and C-VAE-II share the C-VAE-I
+    backbone (same size by construction); bad keys are named."""
+    gpu = preset("gpu")
+    for kind in ("cvae1", "vae", "cvae2"):
+        cfg = run_config(gpu, kind, pretrained="x.pt")
+        assert (cfg.model.width, cfg.model.num_latents, cfg.model.latent_dim) == (384, 512, 32)
+        assert cfg.data.encoder_input == ("item" if kind == "vae" else "stage0")
+    path = tmp_path / "exp.json"
+    path.write_text(json.dumps({"base": "gpu", "num_shapes": 10, "backbone": {"width": 288},
+                                "vae": {"optim": {"lr": 1e-3}}}))
+    cfg = load_experiment(path)
+    assert (cfg.name, cfg.num_shapes, cfg.backbone.width, cfg.backbone.heads) == ("gpu", 10, 288, 6)
+    assert cfg.vae.optim.lr == 1e-3 and cfg.vae.optim.total_steps == gpu.vae.optim.total_steps
+    assert ExperimentConfig.from_dict(cfg.to_dict()) == cfg
+    path.write_text(json.dumps({"num_shape": 3}))
+    with pytest.raises(ValueError, match="num_shape"):
+        load_experiment(path)
+    with pytest.raises(ValueError, match="distill_mesh"):
+        dataclasses.replace(preset("cpu-smoke"), distill_mesh="bunny.obj").validate()
+    assert main(["experiment", "--preset", "gpu", "--out", str(tmp_path), "--print-config"]) == 0
+
+
+def test_flow_budget_drops_only_optional_shapes(tmp_path):
+    """With a flow budget already spent, the held-out shape still flows (it is scheduled first) while the
+    procedural training shapes are left out, recorded in dropped.json and left out again on a rerun."""
+    from vnc_warp.training.experiment import _flows, _shapes
+
+    cfg = dataclasses.replace(preset("cpu-smoke"), num_shapes=3, holdout_shapes=1, stages=1, train_meshes=(),
+                              holdout_meshes=(), distill_mesh="", flow_budget_s=1e-6)
+    shapes = _shapes(cfg, tmp_path, None)
+    _flows(shapes, cfg, "cpu", tmp_path, lambda msg: None)
+    status = {s.name: (s.role, s.status) for s in shapes}
+    assert status == {"family0_0000": ("train", "dropped"), "family0_0001": ("train", "dropped"),
+                      "family0_0002": ("holdout", "done")}
+    assert json.loads((tmp_path / "dropped.json").read_text()) == ["family0_0000", "family0_0001"]
+    again = _shapes(dataclasses.replace(cfg, flow_budget_s=None), tmp_path, None)
+    _flows(again, cfg, "cpu", tmp_path, lambda msg: None)
+    assert [s.status for s in again] == ["dropped", "dropped", "done"]
+    assert again[2].info["status"] == "skipped (done)"
+
+
+def test_time_budget_plans_steps_from_measured_throughput(tmp_path):
+    """With a budget, a short calibration run measures steps/s and fixes the step count at about
+    budget x rate (within [min_steps, nominal]) in plan.json; training reaches it, and a rerun keeps it."""
+    from vnc_warp.training.experiment import _train
+    from vnc_warp.training.synthetic import EllipsoidTrajectories
+
+    exp = dataclasses.replace(preset("cpu-smoke"), calibration_steps=10, min_steps=15)
+    cfg = run_config(exp, "cvae1")
+    cfg.optim = dataclasses.replace(cfg.optim, total_steps=400)
+    data = EllipsoidTrajectories(num_shapes=2, num_stages=3, seed=0)
+    first = _train("cvae1", cfg, data, tmp_path, device="cpu", budget_s=2.0, config=exp, progress=False,
+                   log=lambda msg: None)
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    assert plan["calibration_steps"] == 10 and plan["steps_per_s"] > 0
+    left = max(2.0 - plan["calibration_seconds"], 0.0)
+    assert plan["total_steps"] == int(min(max(10 + 0.9 * plan["steps_per_s"] * left, 15), 400)) < 400
+    assert first["steps"] == plan["total_steps"]
+    rows = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == plan["total_steps"]
+    again = _train("cvae1", cfg, data, tmp_path, device="cpu", budget_s=60.0, config=exp, progress=False,
+                   log=lambda msg: None)
+    assert again["steps"] == first["steps"] and again["seconds"] == pytest.approx(first["seconds"], abs=0.5)
