@@ -39,7 +39,7 @@ def _run(path, variant, params, args):
         warnings.simplefilter("always")
         traj = flow(path, stages=args.stages, faces=args.faces, device=args.device, progress=False,
                     max_iters=args.max_iters, **params)
-    stages = [{k: r[k] for k in ("index", "t", "iterations", "seconds", "sphericity", "status", "vertices", "faces")}
+    stages = [{k: r[k] for k in ("index", "t", "iterations", "seconds", "sphericity", "euler", "status", "vertices", "faces")}
               for r in traj.records]
     return {"mesh": os.path.basename(path), "variant": variant, "stages": stages, "seconds": time.perf_counter() - t0,
             "final_t": float(traj.t[-1]), "final_sphericity": traj.records[-1]["sphericity"],
@@ -49,10 +49,11 @@ def _run(path, variant, params, args):
 def _table(run, n) -> str:
     lines = [f"### {run['mesh']} — {run['variant']} ({run['seconds']:.1f} s, sphericity "
              f"{run['input_sphericity']:.3f} -> {run['final_sphericity']:.3f})", "",
-             "| stage | t | ideal 1-i/N | iterations | seconds | sphericity | status |", "|---|---|---|---|---|---|---|"]
+             "| stage | t | ideal 1-i/N | iterations | seconds | sphericity | Euler | status |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in run["stages"]:
         lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {r['iterations']} | "
-                     f"{r['seconds']:.2f} | {r['sphericity']:.3f} | {r['status']} |")
+                     f"{r['seconds']:.2f} | {r['sphericity']:.3f} | {r.get('euler', '')} | {r['status']} |")
     return "\n".join(lines)
 
 

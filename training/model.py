@@ -349,7 +349,7 @@ class QueryDecoder(nn.Module):
         # The SDF head runs in float32 even under bf16 autocast: bf16 keeps 8 mantissa bits, too coarse
         # for truncated-SDF targets whose near-surface values are a few thousandths.
         with torch.autocast(device_type=x.device.type, enabled=False):
-            return self.head(self.norm(x).float()).squeeze(-1)
+            return self.head(self.norm(x.float())).squeeze(-1)
 
 
 class LatentDecoder(nn.Module):

@@ -112,6 +112,11 @@ class FlowParams:
             raise ValueError("max_iters, eval_every and patience must be >= 1, and eval_max >= eval_every")
 
 
+def _euler(mesh: Mesh) -> int:
+    """Euler characteristic V - E + F (2 for a sphere, 0 for a torus): remeshing may close a handle."""
+    return int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)
+
+
 def sphericity(mesh: Mesh) -> float:
     """Isoperimetric quotient ``36 pi V^2 / A^3``: 1 for a sphere, smaller for anything else."""
     return float(36.0 * np.pi * mesh.volume() ** 2 / mesh.area() ** 3)
@@ -130,7 +135,7 @@ class Trajectory:
     Attributes:
         meshes: N+1 meshes; ``meshes[0]`` is the remeshed input (t = 1).
         t: (N+1,) float64 normalized times (Eq. 7), decreasing from 1.
-        records: one dict per stage (t, S, iterations, seconds, sphericity, status, and ``history``: the
+        records: one dict per stage (t, S, iterations, seconds, sphericity, Euler characteristic, status, and ``history``: the
             ``[iteration, S]`` pairs evaluated during the stage, the first taken after the stage's remesh).
         info: trajectory-level facts (params, scales, S_init, phi_stage, source, version, device).
     """
@@ -387,7 +392,7 @@ def flow(
         info.update(taus=taus.tolist(), S_init=S_init, phi_stage=S_init / p.stages)
         rec = {"index": 0, "t": 1.0, "S": S_init, "file": "stage_000.ply", "iterations": 0,
                "seconds": time.perf_counter() - t_start, "sphericity": sphericity(m0), "vertices": m0.num_vertices,
-               "faces": m0.num_faces, "status": "input"}
+               "faces": m0.num_faces, "euler": _euler(m0), "status": "input"}
         traj = Trajectory([m0], np.array([1.0]), [rec], info)
         if out_dir is not None:
             traj.save(out_dir)
@@ -474,7 +479,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, phi_stage: float, p: Flo
                       f"(budget t = {max(target, 0.0) / S_init:.4f}); recording the t reached", stacklevel=3)
     return {"index": i, "t": S_cur / S_init, "S": S_cur, "target_t": max(target, 0.0) / S_init, "iterations": it,
             "status": status, "sphericity": sphericity(state), "vertices": state.num_vertices,
-            "faces": state.num_faces, "history": history, "_mesh": state}
+            "faces": state.num_faces, "euler": _euler(state), "history": history, "_mesh": state}
 
 
 def _resume(out_dir, info: dict) -> Trajectory | None:
