@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 import warp as wp
 
 import vnc_warp._device  # noqa: F401  (quiet Warp before anything initialises it)
@@ -23,3 +24,13 @@ def real_mesh_path(name: str) -> Path:
     if not p.exists():
         pytest.skip(f"real mesh {name} not available at {MESHES}")
     return p
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny models run fastest on one torch thread; more threads oversubscribe a shared small CPU. Modules opt in
+    with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -16,13 +16,7 @@ from vnc_warp.training.experiment import ExperimentConfig, load_experiment, pres
 TIMES = (0.0, 0.5, 1.0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny models run fastest on one thread; more threads oversubscribe a shared small CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _reduced() -> ExperimentConfig:

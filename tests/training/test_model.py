@@ -35,13 +35,7 @@ TINY = dict(width=32, heads=4, num_latents=16, latent_dim=8, encoder_depth=1, de
             chunk_size=50)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny models run fastest on one thread; more threads oversubscribe a shared small CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture

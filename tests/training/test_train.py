@@ -27,13 +27,7 @@ OVERFIT_STEPS = 150
 LOSS_DROP = 5.0
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny models run fastest on one thread; more threads oversubscribe a shared small CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _rows(run: Path) -> list[dict]:
