@@ -7,7 +7,6 @@ import json
 import math
 
 import pytest
-import torch
 
 from conftest import real_mesh_path
 from vnc_warp.cli import main
