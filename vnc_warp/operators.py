@@ -157,15 +157,33 @@ def _soft_bvh(x, tau_arr, kappa, f, outputs):
     return backward
 
 
+def _soft_sources(cells, f: EdgeFields, device) -> tuple[wp.array, wp.array]:
+    """Edge midpoints+lengths and angles+normals as vec4s in cell order (one 128-bit load each in the kernels)."""
+    E = f.mid.shape[0]
+    pos = wp.empty(E, dtype=wp.vec4, device=device)
+    val = wp.empty(E, dtype=wp.vec4, device=device)
+    wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
+              outputs=[pos, val], device=device, record_tape=False)
+    return pos, val
+
+
+def _ball_sources(cells, x: wp.array, f: EdgeFields, device) -> tuple[wp.array, wp.array, wp.array]:
+    """Edge segments (start, direction, lengths) and angles+normals as vec4s in cell order."""
+    E = f.edges.shape[0]
+    seg_a = wp.empty(E, dtype=wp.vec4, device=device)
+    seg_l = wp.empty(E, dtype=wp.vec4, device=device)
+    val = wp.empty(E, dtype=wp.vec4, device=device)
+    wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
+              outputs=[seg_a, seg_l, val], device=device, record_tape=False)
+    return seg_a, seg_l, val
+
+
 def _soft_cells(x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str):
     """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered)."""
     device = x.device
     V, E = x.shape[0], f.mid.shape[0]
     cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean)
-    pos = wp.empty(E, dtype=wp.vec4, device=device)
-    val = wp.empty(E, dtype=wp.vec4, device=device)
-    wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
-              outputs=[pos, val], device=device, record_tape=False)
+    pos, val = _soft_sources(cells, f, device)
     parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3)
     wp.launch(_k.soft_cells, dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
               outputs=parts, device=device, record_tape=False)
@@ -311,11 +329,7 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str):
     parts = [wp.empty((len(plans) * ns, groups.padded), dtype=dt, device=device)
              for dt in (wp.float32, wp.float32, wp.vec3)]
     for i, (cells, grp) in enumerate(plans):
-        seg_a = wp.empty(E, dtype=wp.vec4, device=device)
-        seg_l = wp.empty(E, dtype=wp.vec4, device=device)
-        val = wp.empty(E, dtype=wp.vec4, device=device)
-        wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
-                  outputs=[seg_a, seg_l, val], device=device)
+        seg_a, seg_l, val = _ball_sources(cells, x, f, device)
         wp.launch(_k.ball_cells, dim=grp.dim,
                   inputs=[points, radius, g, *grp.args(cells), seg_a, seg_l, val, ns, i * ns],
                   outputs=parts, device=device)

@@ -13,7 +13,7 @@ from vnc_warp.kernels import vnc as _k
 from . import _pairs
 from ._device import get_device
 from .mesh import Mesh
-from .operators import _midpoint_bvh, _positions, _segment_bvh, edge_fields
+from .operators import _ball_sources, _midpoint_bvh, _positions, _segment_bvh, _soft_sources, edge_fields
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -152,19 +152,12 @@ def _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H):
         part_den = wp.empty((rows, groups.padded), dtype=wp.float32, device=device)
         for i, (cells, grp) in enumerate(plans):
             if soft:
-                pos = wp.empty(E, dtype=wp.vec4, device=device)
-                val = wp.empty(E, dtype=wp.vec4, device=device)
-                wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
-                          outputs=[pos, val], device=device)
+                pos, val = _soft_sources(cells, f, device)
                 wp.launch(_k.soft_cells_multiscale, dim=grp.dim,
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
                           outputs=[part_num, part_den], device=device)
             else:
-                seg_a = wp.empty(E, dtype=wp.vec4, device=device)
-                seg_l = wp.empty(E, dtype=wp.vec4, device=device)
-                val = wp.empty(E, dtype=wp.vec4, device=device)
-                wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
-                          outputs=[seg_a, seg_l, val], device=device)
+                seg_a, seg_l, val = _ball_sources(cells, x, f, device)
                 wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_a, seg_l, val, grp.splits,
                                   i * grp.splits],
