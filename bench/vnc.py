@@ -110,7 +110,14 @@ def measure(fn, device: wp.Device, *, target_s: float, max_repeats: int, min_rep
 
 
 def peak_bytes(fn, device: wp.Device) -> int | None:
-    """Peak Warp allocation on ``device`` during one call (``wp.ScopedMemoryTracker``), None if unreadable."""
+    """Peak Warp allocation on ``device`` during one call (``wp.ScopedMemoryTracker``), None if unreadable.
+
+    The operators keep their scratch buffers between calls (``vnc_warp._pairs.Pool``): they are dropped first, so
+    the call allocates, and is charged for, all of its memory."""
+    from vnc_warp._pairs import Pool
+
+    Pool.clear()
+    _synchronize(device)
     out = io.StringIO()
     with wp.ScopedMemoryTracker("bench", print=False) as tracker:
         tracker.clear()

@@ -15,10 +15,12 @@ row-major index of a uniform grid cell, so that the cells ``x0..x1`` of one ``(y
 contiguous range ``first[c(x0, y, z)] .. first[c(x1, y, z) + 1]``. *Queries* are taken in *groups* of
 consecutive threads (a CUDA warp on the GPU, one thread on the CPU) that share one box of cells, so the
 threads of a group walk the same sources in lockstep: their loads are uniform and their loop bounds
-equal (only the cut-off test differs per thread). A grid of one cell makes the same kernels an all-pairs (dense) traversal. The candidates of a
-group are split over ``ns`` threads per query (the leading launch dimension) for occupancy; each thread
-writes its partial sums to row ``s`` of a ``(ns, Q)`` array that a reduction kernel adds up in a fixed
-order, so results are deterministic.
+equal (only the cut-off test differs per thread); a group whose balls are far apart (marked by
+:func:`group_boxes`) lets each thread walk the box of its own ball(s) instead. A grid of one cell makes the same
+kernels an all-pairs (dense) traversal. The rows of a box are split over ``ns`` threads (the leading launch
+dimension) for occupancy (long rows in equal parts, short rows whole, in turn: :func:`row_part`); each thread
+writes its partial sums to row ``s`` of a ``(ns, Q)`` array that a reduction kernel adds up in a fixed order, so
+results are deterministic. The forward VNC-soft kernel holds ``QB`` queries per thread.
 """
 
 import warp as wp
@@ -500,9 +502,44 @@ def row_span(row: int, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.arr
 
 
 @wp.func
-def split_window(total: int, s: int, ns: int):
-    """Candidates ``[begin, end)`` (counted over the rows of a group's box) handled by split ``s`` of ``ns``."""
-    return wp.vec2i((total * s) // ns, (total * (s + 1)) // ns)
+def thread_box(grp: int, p: wp.vec3, reach: float, box_lo: wp.array(dtype=wp.vec3i), box_hi: wp.array(dtype=wp.vec3i),
+               origin: wp.vec3, inv_h: float, dims: wp.vec3i):
+    """Cell box walked by a thread: its group's shared box, or (a group marked ``box_lo.x = -1`` by
+    :func:`group_boxes`, whose balls are far apart) the box of the thread's own ball ``|x - p| <= reach``."""
+    lo = box_lo[grp]
+    hi = box_hi[grp]
+    if lo[0] < 0:
+        e = wp.vec3(reach, reach, reach)
+        lo = cell_coord(p - e, origin, inv_h, dims)
+        hi = cell_coord(p + e, origin, inv_h, dims)
+    return lo, hi
+
+
+# A row of a box with at least this many candidates per split is shared by all splits; shorter rows go whole to
+# one split each, in turn.
+LONG_ROW = wp.constant(8)
+
+
+@wp.func
+def row_part(span: wp.vec2i, row: int, s: int, ns: int):
+    """The candidates of split ``s`` of ``ns`` in a row ``span`` of a box: part ``s`` of a long row, the whole of
+    every ``ns``-th short row. Balanced on the long rows that dominate large boxes, and no split has to count its
+    way to a window first."""
+    n = span[1] - span[0]
+    out = wp.vec2i(span[0], span[0])
+    if n >= LONG_ROW * ns:
+        out = wp.vec2i(span[0] + (n * s) // ns, span[0] + (n * (s + 1)) // ns)
+    elif row % ns == s:
+        out = span
+    return out
+
+
+@wp.func_native(
+"return exp2f(x);"
+)
+def exp2(x: float) -> float:
+    """``2^x`` (one ``ex2.approx`` with fast math on CUDA)."""
+    ...
 
 
 @wp.func
@@ -583,8 +620,10 @@ def cell_keys(
     lmax: float,
     keys: wp.array(dtype=int),
     values: wp.array(dtype=int),
+    counts: wp.array(dtype=int),
 ):
-    """Sort keys of the sources: their row-major cell index (values: their own index).
+    """Sort keys of the sources: their row-major cell index (values: their own index); ``counts[c]`` (zeroed
+    first) += number of sources with key ``c`` (an exclusive scan of it gives ``first``).
 
     When ``length`` is given, a source with ``length`` outside ``(lmin, lmax]`` gets the key ``num_cells``: it
     sorts after every cell and no traversal of this grid sees it.
@@ -596,6 +635,7 @@ def cell_keys(
             key = dims[0] * dims[1] * dims[2]
     keys[i] = key
     values[i] = i
+    wp.atomic_add(counts, key, 1)
 
 
 @wp.kernel(enable_backward=False)
@@ -624,14 +664,6 @@ def iota(values: wp.array(dtype=int)):
 
 
 @wp.kernel(enable_backward=False)
-def cell_count(keys: wp.array(dtype=int), counts: wp.array(dtype=int)):
-    """``counts[c]`` += number of sources with key ``c`` (``counts`` zeroed first); an exclusive scan of it gives
-    ``first``, the start of every cell in sorted order."""
-    i = wp.tid()
-    wp.atomic_add(counts, keys[i], 1)
-
-
-@wp.kernel(enable_backward=False)
 def group_boxes(
     points: wp.array(dtype=wp.vec3),
     order: wp.array(dtype=int),
@@ -639,34 +671,47 @@ def group_boxes(
     pad: float,
     count: int,
     size: int,
+    per_thread: int,
     origin: wp.vec3,
     inv_h: float,
     dims: wp.vec3i,
-    first: wp.array(dtype=int),
+    spread: float,
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
 ):
     """Per group of ``size`` consecutive sorted queries: the cells reached by any of its balls
-    ``|x - p_k| <= radius[k] + pad``, and the number of sources in them."""
+    ``|x - p_k| <= radius[k] + pad``.
+
+    The threads of a group walk that shared box. When it holds more than ``spread`` times the cells of the largest
+    box of one thread's ``per_thread`` queries (the balls are far apart, e.g. across a jump of the Morton curve,
+    or small next to the group's extent) the group is marked ``box_lo.x = -1``: each thread then walks its own
+    box (:func:`thread_box`)."""
     g = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
-    for t in range(g * size, wp.min(g * size + size, count)):
-        k = order[t]
-        r = radius[k] + pad
-        e = wp.vec3(r, r, r)
-        lo = wp.min(lo, points[k] - e)
-        hi = wp.max(hi, points[k] + e)
+    own = float(0.0)
+    end = wp.min(g * size + size, count)
+    for t0 in range(g * size, end, per_thread):
+        tlo = wp.vec3(1.0e30)
+        thi = wp.vec3(-1.0e30)
+        for t in range(t0, wp.min(t0 + per_thread, end)):
+            k = order[t]
+            r = radius[k] + pad
+            e = wp.vec3(r, r, r)
+            tlo = wp.min(tlo, points[k] - e)
+            thi = wp.max(thi, points[k] + e)
+        c0 = cell_coord(tlo, origin, inv_h, dims)
+        c1 = cell_coord(thi, origin, inv_h, dims)
+        own = wp.max(own, float(c1[0] - c0[0] + 1) * float(c1[1] - c0[1] + 1) * float(c1[2] - c0[2] + 1))
+        lo = wp.min(lo, tlo)
+        hi = wp.max(hi, thi)
     clo = cell_coord(lo, origin, inv_h, dims)
     chi = cell_coord(hi, origin, inv_h, dims)
+    shared = float(chi[0] - clo[0] + 1) * float(chi[1] - clo[1] + 1) * float(chi[2] - clo[2] + 1)
+    if shared > spread * own:
+        clo = wp.vec3i(-1, clo[1], clo[2])
     box_lo[g] = clo
     box_hi[g] = chi
-    n = int(0)
-    for row in range(box_rows(clo, chi)):
-        span = row_span(row, clo, chi, dims, first)
-        n += span[1] - span[0]
-    total[g] = n
 
 
 @wp.kernel(enable_backward=False)
@@ -717,6 +762,12 @@ def pack_ball_sources(
     val[i] = wp.vec4(angle[j], u[0], u[1], u[2])
 
 
+# Queries per thread of the forward VNC-soft traversal: every source read is used for this many queries
+QB = wp.constant(4)
+vecq = wp.types.vector(length=4, dtype=wp.float32)
+LOG2E = wp.constant(1.4426950408889634)
+
+
 @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
 def soft_cells(
     x: wp.array(dtype=wp.vec3),
@@ -727,52 +778,84 @@ def soft_cells(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     pos: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
     part_num: wp.array2d(dtype=float),
     part_den: wp.array2d(dtype=float),
     part_n: wp.array2d(dtype=wp.vec3),
 ):
-    """VNC-soft, Eq. (3), partial sums of split ``s`` for sorted query ``t``, cut off at ``r = kappa sigma = tau``."""
-    s, t = wp.tid()
-    if t >= count:
+    """VNC-soft, Eq. (3), cut off at ``r = kappa sigma = tau``: partial sums of split ``s`` for the ``QB``
+    consecutive sorted queries ``QB u .. QB u + QB - 1`` of thread ``u``.
+
+    Every source record read (two 16-byte loads) serves ``QB`` queries held in registers, so a pair costs its
+    distance, the cut-off test, one ``exp2`` and five multiply-adds. Groups hold ``QB x 32`` queries on CUDA.
+    """
+    s, u = wp.tid()
+    t0 = u * QB
+    if t0 >= count:
         return
-    k = order[t]
-    g = t // size
-    p = x[k]
-    r = tau[k]
-    sigma = r / kappa
-    ngk = -1.0 / (2.0 * sigma * sigma)
-    r2 = r * r
+    g = t0 // size
+    px = vecq()
+    py = vecq()
+    pz = vecq()
+    r2 = vecq()
+    gl = vecq()
+    tlo = wp.vec3(1.0e30)
+    thi = wp.vec3(-1.0e30)
+    for q in range(QB):
+        r2[q] = -1.0
+        if t0 + q < count:
+            k = order[t0 + q]
+            p = x[k]
+            r = tau[k]
+            px[q] = p[0]
+            py[q] = p[1]
+            pz[q] = p[2]
+            r2[q] = r * r
+            # exp(-d^2 / 2 sigma^2) = 2^(d^2 gl), sigma = r / kappa
+            gl[q] = -LOG2E * kappa * kappa / (2.0 * r * r)
+            e = wp.vec3(r + pad)
+            tlo = wp.min(tlo, p - e)
+            thi = wp.max(thi, p + e)
     lo = box_lo[g]
     hi = box_hi[g]
-    win = split_window(total[g], s, part_num.shape[0])
-    seen = int(0)
-    acc = vec5()
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    if lo[0] < 0:
+        lo = cell_coord(tlo, origin, inv_h, dims)
+        hi = cell_coord(thi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = part_num.shape[0]
+    an = vecq()
+    ad = vecq()
+    ax = vecq()
+    ay = vecq()
+    az = vecq()
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             ep = load4(pos, i)
-            d = p - wp.vec3(ep[0], ep[1], ep[2])
-            q = wp.dot(d, d)
-            if q <= r2:
-                w = wp.exp(q * ngk)
-                ev = load4(val, i)
-                acc[0] += w * ev[0]
-                acc[1] += w * ep[3]
-                acc[2] += w * ev[1]
-                acc[3] += w * ev[2]
-                acc[4] += w * ev[3]
-        seen += n
-        if seen >= win[1]:
-            break
-    part_num[s, t] = acc[0]
-    part_den[s, t] = acc[1]
-    part_n[s, t] = wp.vec3(acc[2], acc[3], acc[4])
+            ev = load4(val, i)
+            for q in range(QB):
+                dx = px[q] - ep[0]
+                dy = py[q] - ep[1]
+                dz = pz[q] - ep[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 <= r2[q]:
+                    w = exp2(d2 * gl[q])
+                    an[q] += w * ev[0]
+                    ad[q] += w * ep[3]
+                    ax[q] += w * ev[1]
+                    ay[q] += w * ev[2]
+                    az[q] += w * ev[3]
+    for q in range(QB):
+        if t0 + q < count:
+            part_num[s, t0 + q] = an[q]
+            part_den[s, t0 + q] = ad[q]
+            part_n[s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
 
 
 @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
@@ -785,9 +868,11 @@ def ball_cells(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     seg_a: wp.array(dtype=wp.vec4),
     seg_l: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
@@ -812,15 +897,13 @@ def ball_cells(
     r = radius[k]
     r2 = r * r
     gk = g[k]
-    lo = box_lo[grp]
-    hi = box_hi[grp]
-    win = split_window(total[grp], s, splits)
-    seen = int(0)
+    lo, hi = thread_box(grp, p, r + pad, box_lo, box_hi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = splits
     acc = vec5()
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             sa = load4(seg_a, i)
             sl = load4(seg_l, i)
             oc = wp.vec3(sa[0], sa[1], sa[2]) - p
@@ -839,9 +922,6 @@ def ball_cells(
                 acc[2] += w * ev[1]
                 acc[3] += w * ev[2]
                 acc[4] += w * ev[3]
-        seen += n
-        if seen >= win[1]:
-            break
     part_num[row0 + s, t] = acc[0]
     part_den[row0 + s, t] = acc[1]
     part_n[row0 + s, t] = wp.vec3(acc[2], acc[3], acc[4])
@@ -890,9 +970,11 @@ def soft_cells_grad_x(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     pos: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
     num: wp.array(dtype=float),
@@ -924,15 +1006,13 @@ def soft_cells_grad_x(
     sl = wp.max(wp.length(S), 1.0e-30)
     nk = S / sl
     gS = (n_grad[k] - nk * wp.dot(nk, n_grad[k])) / sl
-    lo = box_lo[grp]
-    hi = box_hi[grp]
-    win = split_window(total[grp], s, part_gx.shape[0])
-    seen = int(0)
+    lo, hi = thread_box(grp, p, r + pad, box_lo, box_hi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = part_gx.shape[0]
     acc = wp.vec3(0.0)
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             ep = load4(pos, i)
             d = p - wp.vec3(ep[0], ep[1], ep[2])
             q = wp.dot(d, d)
@@ -941,9 +1021,6 @@ def soft_cells_grad_x(
                 w = wp.exp(-q * gk)
             ev = load4(val, i)
             acc += (w * (gN * ev[0] + gD * ep[3] + wp.dot(gS, wp.vec3(ev[1], ev[2], ev[3])))) * d
-        seen += n
-        if seen >= win[1]:
-            break
     part_gx[s, t] = (-2.0 * gk) * acc
 
 
@@ -1006,9 +1083,11 @@ def soft_cells_grad_edges(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     pos: wp.array(dtype=wp.vec4),
     coef: wp.array(dtype=wp.vec4),
     gs: wp.array(dtype=wp.vec4),
@@ -1027,18 +1106,16 @@ def soft_cells_grad_edges(
     m = mid[j]
     a = angle[j]
     u = enormal[j]
-    lo = box_lo[grp]
-    hi = box_hi[grp]
-    win = split_window(total[grp], s, part_a.shape[0])
-    seen = int(0)
+    lo, hi = thread_box(grp, m, pad, box_lo, box_hi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = part_a.shape[0]
     A = float(0.0)
     B = float(0.0)
     C = wp.vec3(0.0)
     M = wp.vec3(0.0)
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             vp = load4(pos, i)
             d = wp.vec3(vp[0], vp[1], vp[2]) - m
             q = wp.dot(d, d)
@@ -1052,9 +1129,6 @@ def soft_cells_grad_edges(
             B += vc[2] * w
             C += w * gsv
             M += (vc[0] * w * (vc[1] * a + vc[2] + wp.dot(gsv, u))) * d
-        seen += n
-        if seen >= win[1]:
-            break
     part_a[s, t] = A
     part_b[s, t] = B
     part_c[s, t] = C
@@ -1098,17 +1172,30 @@ def reduce_edge_grads(
 
 @wp.func
 def scale_params(taus: wp.array(dtype=float), offset: int, kappa: float):
-    """Squared radii and Gaussian factors ``kappa^2 / (2 tau^2)`` of the (up to) 16 scales ``taus[offset:]``;
-    missing scales get radius^2 = -1 (never reached). ``kappa = 0`` gives unweighted scales (factor 0)."""
+    """Squared radii and base-2 Gaussian factors ``-log2(e) kappa^2 / (2 tau^2)`` of the (up to) 16 scales
+    ``taus[offset:]`` (``exp(-d^2 / 2 sigma^2) = 2^(d^2 gl)``); missing scales get radius^2 = -1 (never reached).
+    ``kappa = 0`` gives unweighted scales (factor 0)."""
     r2 = vec16()
-    gs = vec16()
+    gl = vec16()
     for c in range(16):
         r2[c] = -1.0
         if offset + c < taus.shape[0]:
             tc = taus[offset + c]
             r2[c] = tc * tc
-            gs[c] = kappa * kappa / (2.0 * tc * tc)
-    return r2, gs
+            gl[c] = -LOG2E * kappa * kappa / (2.0 * tc * tc)
+    return r2, gl
+
+
+@wp.func
+def prefix_max4(r2: vec16):
+    """``pm[b] = max(r2[0 .. 4 b + 3])``: the largest squared radius of scale blocks ``0..b``."""
+    pm = wp.vec4()
+    m = float(-1.0)
+    for b in range(4):
+        for c in range(4):
+            m = wp.max(m, r2[4 * b + c])
+        pm[b] = m
+    return pm
 
 
 @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
@@ -1122,9 +1209,11 @@ def soft_cells_multiscale(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     pos: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
     part_num: wp.array2d(dtype=float),
@@ -1139,35 +1228,49 @@ def soft_cells_multiscale(
         return
     k = order[t]
     grp = t // size
-    r2, gs = scale_params(taus, offset, kappa)
-    rmax2 = float(-1.0)
-    for c in range(16):
-        rmax2 = wp.max(rmax2, r2[c])
+    r2, gl = scale_params(taus, offset, kappa)
+    pm = prefix_max4(r2)
+    rmax2 = pm[3]
     p = x[k]
-    lo = box_lo[grp]
-    hi = box_hi[grp]
-    win = split_window(total[grp], s, part_num.shape[0] // 16)
-    seen = int(0)
+    lo, hi = thread_box(grp, p, wp.sqrt(wp.max(rmax2, 0.0)) + pad, box_lo, box_hi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = part_num.shape[0] // 16
     an = vec16()
     ad = vec16()
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             ep = load4(pos, i)
             d = p - wp.vec3(ep[0], ep[1], ep[2])
             q = wp.dot(d, d)
-            if q <= rmax2:
+            # scales ascend, so a pair beyond the largest radius of blocks 0..b reaches none of them: blocks are
+            # visited from the top and the walk stops at the first block out of reach (about 3 scales per pair)
+            if q <= pm[3]:
                 la = load4(val, i)[0]
                 L = ep[3]
-                for c in range(16):
-                    if q <= r2[c]:
-                        w = wp.exp(-q * gs[c])
-                        an[c] += w * la
-                        ad[c] += w * L
-        seen += n
-        if seen >= win[1]:
-            break
+                for c in range(4):
+                    if q <= r2[12 + c]:
+                        w = exp2(q * gl[12 + c])
+                        an[12 + c] += w * la
+                        ad[12 + c] += w * L
+                if q <= pm[2]:
+                    for c in range(4):
+                        if q <= r2[8 + c]:
+                            w = exp2(q * gl[8 + c])
+                            an[8 + c] += w * la
+                            ad[8 + c] += w * L
+                    if q <= pm[1]:
+                        for c in range(4):
+                            if q <= r2[4 + c]:
+                                w = exp2(q * gl[4 + c])
+                                an[4 + c] += w * la
+                                ad[4 + c] += w * L
+                        if q <= pm[0]:
+                            for c in range(4):
+                                if q <= r2[0 + c]:
+                                    w = exp2(q * gl[0 + c])
+                                    an[0 + c] += w * la
+                                    ad[0 + c] += w * L
     for c in range(16):
         part_num[16 * s + c, t] = an[c]
         part_den[16 * s + c, t] = ad[c]
@@ -1184,9 +1287,11 @@ def ball_cells_multiscale(
     order: wp.array(dtype=int),
     box_lo: wp.array(dtype=wp.vec3i),
     box_hi: wp.array(dtype=wp.vec3i),
-    total: wp.array(dtype=int),
     first: wp.array(dtype=int),
     dims: wp.vec3i,
+    origin: wp.vec3,
+    inv_h: float,
+    pad: float,
     seg_a: wp.array(dtype=wp.vec4),
     seg_l: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
@@ -1202,21 +1307,18 @@ def ball_cells_multiscale(
         return
     k = order[t]
     grp = t // size
-    r2, gs = scale_params(taus, offset, kappa)
-    rmax2 = float(-1.0)
-    for c in range(16):
-        rmax2 = wp.max(rmax2, r2[c])
+    r2, gl = scale_params(taus, offset, kappa)
+    pm = prefix_max4(r2)
+    rmax2 = pm[3]
     p = points[k]
-    lo = box_lo[grp]
-    hi = box_hi[grp]
-    win = split_window(total[grp], s, splits)
-    seen = int(0)
+    lo, hi = thread_box(grp, p, wp.sqrt(wp.max(rmax2, 0.0)) + pad, box_lo, box_hi, origin, inv_h, dims)
+    nrows = box_rows(lo, hi)
+    ns = splits
     an = vec16()
     ad = vec16()
-    for row in range(box_rows(lo, hi)):
-        span = row_span(row, lo, hi, dims, first)
-        n = span[1] - span[0]
-        for i in range(span[0] + wp.max(win[0] - seen, 0), span[0] + wp.min(win[1] - seen, n)):
+    for row in range(nrows):
+        span = row_part(row_span(row, lo, hi, dims, first), row, s, ns)
+        for i in range(span[0], span[1]):
             sa = load4(seg_a, i)
             sl = load4(seg_l, i)
             oc = wp.vec3(sa[0], sa[1], sa[2]) - p
@@ -1225,18 +1327,38 @@ def ball_cells_multiscale(
             oo = wp.dot(oc, oc)
             ll = sl[3] * sl[3]
             # the chord grows with the radius: no chord at the largest scale means none at any
-            if lo_ * lo_ - ll * (oo - rmax2) > 0.0:
+            # the chord grows with the radius: a segment missing the largest ball of blocks 0..b misses all of them
+            disc0 = lo_ * lo_ - ll * oo
+            if disc0 + ll * pm[3] > 0.0:
                 a = load4(val, i)[0]
                 q = oo + lo_ + 0.25 * ll
-                for c in range(16):
-                    l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[c])
+                for c in range(4):
+                    l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[12 + c])
                     if l_in > 0.0:
-                        w = l_in * wp.exp(-q * gs[c])
-                        an[c] += w * a
-                        ad[c] += w
-        seen += n
-        if seen >= win[1]:
-            break
+                        w = l_in * exp2(q * gl[12 + c])
+                        an[12 + c] += w * a
+                        ad[12 + c] += w
+                if disc0 + ll * pm[2] > 0.0:
+                    for c in range(4):
+                        l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[8 + c])
+                        if l_in > 0.0:
+                            w = l_in * exp2(q * gl[8 + c])
+                            an[8 + c] += w * a
+                            ad[8 + c] += w
+                    if disc0 + ll * pm[1] > 0.0:
+                        for c in range(4):
+                            l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[4 + c])
+                            if l_in > 0.0:
+                                w = l_in * exp2(q * gl[4 + c])
+                                an[4 + c] += w * a
+                                ad[4 + c] += w
+                        if disc0 + ll * pm[0] > 0.0:
+                            for c in range(4):
+                                l_in = chord(lo_, oo, ll, sa[3], sl[3], r2[0 + c])
+                                if l_in > 0.0:
+                                    w = l_in * exp2(q * gl[0 + c])
+                                    an[0 + c] += w * a
+                                    ad[0 + c] += w
     for c in range(16):
         part_num[16 * (row0 + s) + c, t] = an[c]
         part_den[16 * (row0 + s) + c, t] = ad[c]

@@ -85,3 +85,18 @@ def test_failing_row_is_reported_not_raised(tmp_path):
     assert row.status == "skipped" and row.note == "too many pairs"
     ok = b.run(bench.Row(section="operator", mesh="m", name="fine", variant="x"), lambda: np.zeros(3))
     assert ok.status == "ok" and ok.repeats >= 1
+
+
+def test_breakdown_runs_and_reports_every_operator(tmp_path):
+    """``python -m bench.breakdown`` on the CPU device writes one row per operator and scale, with finite wall
+    and host times (no timing is asserted; the per-kernel split exists on CUDA only)."""
+    from bench import breakdown
+
+    out = tmp_path / "breakdown.json"
+    assert breakdown.main(["--device", "cpu", "--mesh", "spot_lowres.obj", "--taus", "2", "diag/2",
+                           "--repeats", "1", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["V"] > 0 and doc["device"] == "cpu"
+    assert [(r["op"], r["tau"]) for r in doc["rows"]] == [("soft", "2"), ("soft", "diag/2"), ("hard", "2"),
+                                                            ("hard", "diag/2"), ("curve", "16 scales")]
+    assert all(math.isfinite(r["wall_ms"]) and r["wall_ms"] > 0 and math.isfinite(r["host_ms"]) for r in doc["rows"])

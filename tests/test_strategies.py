@@ -26,7 +26,7 @@ def _bumpy_sphere(subdiv=3, seed=0):
 @pytest.fixture
 def cuda_launch_shape(monkeypatch):
     """Groups of 32 queries split over 3 threads each, as on a GPU, on whatever device runs."""
-    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count: (32, 3))
+    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1: (32 * per_thread, 3))
 
 
 def _taus(mesh):
@@ -52,9 +52,13 @@ def test_soft_matches_dense_float64_every_strategy(strategy, device):
         np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"{strategy}, {name}")
 
 
-def test_strategies_agree_with_cuda_launch_shape(cuda_launch_shape, device):
+@pytest.mark.parametrize("spread", [None, 1.01])
+def test_strategies_agree_with_cuda_launch_shape(cuda_launch_shape, spread, monkeypatch, device):
     """With warp-sized groups and split candidates (the CUDA shape, V not a multiple of 32), "grid" and "dense"
-    equal the per-thread BVH for VNC-soft, VNC-hard and Eq. (1)."""
+    equal the per-thread BVH for VNC-soft, VNC-hard and Eq. (1); ``spread=1.01`` makes most groups walk per-thread
+    boxes."""
+    if spread is not None:
+        monkeypatch.setattr(_pairs, "SPREAD", spread)
     mesh = _bumpy_sphere()
     assert mesh.num_vertices % 32 != 0
     for name, tau in _taus(mesh).items():
@@ -183,3 +187,23 @@ def test_auto_choice_and_bad_strategy(device):
         vw.vnc_soft(mesh, 1.0, device=device, strategy="kd-tree")
     with pytest.raises(ValueError, match="grid, dense"):
         vw.scale_curve(mesh, vw.default_scales(mesh, 4), device=device, strategy="octree")
+
+
+def test_group_modes_both_exercised(cuda_launch_shape, monkeypatch, device):
+    """With the CUDA launch shape, groups whose shared box is larger than their threads' own boxes walk per-thread
+    boxes (``box_lo.x = -1``; the threshold lowered here so that a small mesh shows it) and groups of balls that
+    cover the mesh a shared box; both give the BVH's result."""
+    monkeypatch.setattr(_pairs, "SPREAD", 1.01)
+    mesh = _bumpy_sphere()
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    for factor, expect_per_thread in ((2.0, True), (30.0, False)):
+        tau = factor * mesh.mean_edge_length
+        radius = wp.full(mesh.num_vertices, tau, dtype=wp.float32, device=device)
+        b = _pairs.bounds(x, radius)
+        _, groups = _pairs.plan(x, radius, f.mid, b, "grid", b.rmean, per_thread=4)
+        flagged = groups.box_lo.numpy()[:, 0] < 0
+        assert flagged.any() == expect_per_thread, (factor, flagged.mean())
+        H = vw.vnc_soft(mesh, tau, device=device, strategy="grid")[0].numpy()
+        Hb = vw.vnc_soft(mesh, tau, device=device, strategy="bvh")[0].numpy()
+        np.testing.assert_allclose(H, Hb, atol=2e-6)

@@ -4,17 +4,20 @@ Every operator of :mod:`vnc_warp.operators` and :mod:`vnc_warp.scale` sums over 
 (a vertex or a ball centre) and a source (an edge) closer than a cut-off radius. Three strategies visit
 exactly those pairs, so they give the same result up to float32 rounding; they differ in cost:
 
-* ``"grid"``: sources sorted into a uniform grid of cells; groups of queries (a CUDA warp on the GPU,
-  one thread on the CPU) walk the cells that their balls reach, in lockstep. Cost: the candidates in
-  those cells, read as contiguous rows, plus two sorts and a few small launches to set up.
+* ``"grid"``: sources sorted into a uniform grid of cells; groups of queries (a CUDA warp of threads on the
+  GPU, one thread on the CPU) walk the cells that their balls reach, in lockstep; a group whose balls are far
+  apart (small balls, or a jump of the Morton curve) lets each thread walk its own box instead. Cost: the
+  candidates in those cells, read as contiguous rows, plus a sort of the sources and a few small launches.
 * ``"dense"``: the same kernels over a one-cell grid: every query reads every source (the paper's
   "global dense" form, without a V x E matrix). Cheapest when most pairs are within reach anyway.
 * ``"bvh"``: one ``wp.Bvh`` query per thread (the original kernels), kept as an independent check.
 * ``"auto"``: ``"dense"`` when the balls' boxes would cover most of the grid anyway (or, on CUDA, when
   there are fewer than 4M pairs in all, where launch count dominates), otherwise ``"grid"``.
 
-The split of each group's candidates over several threads (``splits``) only raises occupancy on the GPU;
-partial sums are added in a fixed order afterwards, so every strategy is deterministic. The ball kernels
+The split of each box's rows over several threads (``splits``) only raises occupancy on the GPU; partial
+sums are added in a fixed order afterwards, so every strategy is deterministic. The forward VNC-soft kernel
+takes several queries per thread, so that each source it reads serves all of them. Scratch buffers come from a
+:class:`Pool` and the queries' Morton order is kept with the mesh: both only save host time. The ball kernels
 (Eqs. 1-2) reach an edge from up to half its length beyond the radius, so they traverse the edges in tiers
 of similar length (:func:`ball_plans`): a few long edges, common in scans, do not widen every query's box.
 """
@@ -45,13 +48,59 @@ def check_strategy(strategy: str) -> str:
     return strategy
 
 
-def launch_shape(device: wp.Device, count: int) -> tuple[int, int]:
-    """``(group size, splits)`` for ``count`` queries: one warp per group and enough splits on CUDA to fill
-    the device about twice; one query per group and no split on the (single-threaded) CPU device."""
+def launch_shape(device: wp.Device, count: int, per_thread: int = 1) -> tuple[int, int]:
+    """``(group size, splits)`` for ``count`` queries taken ``per_thread`` at a time: one warp of threads per group
+    and enough splits on CUDA to fill the device about twice; one thread per group and no split on the
+    (single-threaded) CPU device."""
     if device.is_cpu:
-        return 1, 1
+        return per_thread, 1
+    threads = -(-count // per_thread)
     resident = 2048 * max(int(getattr(device, "sm_count", 0) or 0), 1)
-    return _CUDA_GROUP, int(np.clip((2 * resident) // max(count, 1), 1, 16))
+    return _CUDA_GROUP * per_thread, int(np.clip((2 * resident) // max(threads, 1), 1, 16 * per_thread ** 0.5))
+
+
+class Pool:
+    """Scratch arrays reused from one call to the next: creating a ``wp.array`` costs more host time than the
+    small kernels it feeds. The ``n``-th request of a call of one ``kind`` gets back the buffer of the previous
+    such call with the same shape and dtype. Reuse is in stream order on one device, and scratch is never handed
+    to the caller; calls whose backward pass keeps its intermediates use no pool (``pool=None``)."""
+
+    _stores: dict = {}
+    LIMIT = 128
+
+    def __init__(self, device: wp.Device, kind: str):
+        key = (device.alias, device.stream.cuda_stream if device.is_cuda else 0)
+        self.store = Pool._stores.setdefault(key, {})
+        self.device, self.kind, self.n = device, kind, 0
+
+    def empty(self, shape, dtype) -> wp.array:
+        self.n += 1
+        key = (self.kind, self.n, shape if isinstance(shape, tuple) else (int(shape),), dtype)
+        arr = self.store.pop(key, None)
+        if arr is None:
+            arr = wp.empty(shape, dtype=dtype, device=self.device)
+        self.store[key] = arr  # most recently used last
+        while len(self.store) > Pool.LIMIT:
+            self.store.pop(next(iter(self.store)))
+        return arr
+
+    def zeros(self, shape, dtype) -> wp.array:
+        arr = self.empty(shape, dtype)
+        arr.zero_()
+        return arr
+
+    @staticmethod
+    def clear() -> None:
+        """Drop every pooled buffer (e.g. to return memory)."""
+        Pool._stores.clear()
+
+
+def _empty(pool: Pool | None, device, shape, dtype) -> wp.array:
+    return wp.empty(shape, dtype=dtype, device=device) if pool is None else pool.empty(shape, dtype)
+
+
+def _zeros(pool: Pool | None, device, shape, dtype) -> wp.array:
+    return wp.zeros(shape, dtype=dtype, device=device) if pool is None else pool.zeros(shape, dtype)
 
 
 @dataclass
@@ -129,7 +178,8 @@ class Cells:
     dims: wp.vec3i
 
 
-def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | None = None) -> Cells:
+def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | None = None,
+                pool: Pool | None = None) -> Cells:
     """Sort ``points`` (the sources) into a grid of cells of size ``h`` over ``b`` (``h=None``: one cell).
 
     ``select = (length, lmin, lmax)`` keeps only the sources with ``lmin < length <= lmax`` in the cells (the
@@ -139,7 +189,7 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | No
     n = points.shape[0]
     origin = wp.vec3(*b.lo)
     if h is None and select is None:
-        order = wp.empty(n, dtype=wp.int32, device=device)
+        order = _empty(pool, device, n, wp.int32)
         wp.launch(_k.iota, dim=n, outputs=[order], device=device, record_tape=False)
         first = wp.array(np.array([0, n], dtype=np.int32), device=device)
         return Cells(order, first, origin, 0.0, wp.vec3i(1, 1, 1))
@@ -148,96 +198,127 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | No
     dims = wp.vec3i(*[int(d) for d in dims_np])
     num_cells = int(np.prod(dims_np))
     length, lmin, lmax = select if select is not None else (wp.empty(0, dtype=wp.float32, device=device), 0.0, 0.0)
-    keys = wp.empty(2 * n, dtype=wp.int32, device=device)
-    values = wp.empty(2 * n, dtype=wp.int32, device=device)
+    keys = _empty(pool, device, 2 * n, wp.int32)
+    values = _empty(pool, device, 2 * n, wp.int32)
+    counts = _zeros(pool, device, num_cells + 1, wp.int32)
     wp.launch(_k.cell_keys, dim=n, inputs=[points, origin, inv_h, dims, length, float(lmin), float(lmax)],
-              outputs=[keys, values], device=device, record_tape=False)
-    counts = wp.zeros(num_cells + 1, dtype=wp.int32, device=device)
-    wp.launch(_k.cell_count, dim=n, inputs=[keys], outputs=[counts], device=device, record_tape=False)
+              outputs=[keys, values, counts], device=device, record_tape=False)
     wp.utils.radix_sort_pairs(keys, values, n, end_bit=max(int(num_cells).bit_length(), 1))
-    first = wp.empty(num_cells + 1, dtype=wp.int32, device=device)
+    first = _empty(pool, device, num_cells + 1, wp.int32)
     wp.utils.array_scan(counts, first, inclusive=False)
     return Cells(values[:n], first, origin, inv_h, dims)
 
 
+# A group's threads walk their own boxes when the group's shared box has this many times more cells than the
+# largest box of one thread (see kernels.vnc.group_boxes).
+SPREAD = 8.0
+
+
 @dataclass
 class Groups:
-    """Queries in traversal order, in groups of ``size`` that share a box of cells, split ``splits`` ways.
+    """Queries in traversal order, in groups of ``size`` that share a box of cells (or walk their own boxes when
+    their balls are far apart), each thread taking ``per_thread`` queries and its box split ``splits`` ways.
 
-    Launch the pair kernels with ``dim=(splits, padded)``; partial sums have shape ``(splits, padded)``.
+    Launch the pair kernels with ``dim=(splits, padded // per_thread)``; partial sums have shape
+    ``(splits, padded)``. ``pad`` is added to every query's radius.
     """
 
     order: wp.array
     box_lo: wp.array
     box_hi: wp.array
-    total: wp.array
     size: int
     splits: int
     count: int
     padded: int
+    pad: float
+    per_thread: int = 1
 
     @property
     def dim(self) -> tuple[int, int]:
-        return self.splits, self.padded
+        return self.splits, self.padded // self.per_thread
 
     def args(self, cells: Cells) -> list:
         """The shared traversal arguments of the ``*_cells`` kernels, after their per-query inputs."""
-        return [self.count, self.size, self.order, self.box_lo, self.box_hi, self.total, cells.first, cells.dims]
+        return [self.count, self.size, self.order, self.box_lo, self.box_hi, cells.first, cells.dims, cells.origin,
+                cells.inv_h, float(self.pad)]
+
+
+def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Pool | None = None) -> wp.array:
+    """The queries sorted along a Morton curve, so that consecutive queries are close together.
+
+    ``cache``: a dict (e.g. a mesh's) that keeps the order of the first call for every later call with as many
+    queries on the same device. The order only decides how queries are grouped, never which pairs are summed,
+    so a kept order stays correct when the points move (a flow); it only becomes less tight."""
+    device = points.device
+    count = points.shape[0]
+    key = ("query_order", str(device), count)
+    if cache is not None and key in cache:
+        return cache[key]
+    keep = None if cache is not None else pool  # a kept order must not be a pooled buffer
+    keys = _empty(keep, device, 2 * count, wp.int32)
+    values = _empty(keep, device, 2 * count, wp.int32)
+    extent = float(np.max(b.hi - b.lo))
+    scale = 1024.0 / extent if extent > 0 else 0.0
+    wp.launch(_k.morton_keys, dim=count, inputs=[points, wp.vec3(*b.lo), scale], outputs=[keys, values],
+              device=device, record_tape=False)
+    wp.utils.radix_sort_pairs(keys, values, count, end_bit=30)
+    order = values[:count]
+    if cache is not None:
+        cache[key] = order
+    return order
 
 
 def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, *,
-                 spatial_order: bool, splits: int | None = None, like: Groups | None = None) -> Groups:
+                 spatial_order: bool, splits: int | None = None, like: Groups | None = None, per_thread: int = 1,
+                 cache: dict | None = None, pool: Pool | None = None) -> Groups:
     """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``.
 
-    ``spatial_order`` sorts the queries along a Morton curve first, so a group's balls are close together
-    (only worth it for groups of more than one query over more than one cell). ``like``: reuse the order, group
-    size and splits of another traversal of the same queries (their partial sums then line up).
+    ``spatial_order`` sorts the queries along a Morton curve first (:func:`query_order`, kept in ``cache``), so a
+    group's balls are close together (only worth it for groups of more than one query over more than one cell).
+    ``like``: reuse the order, group size, splits and queries per thread of another traversal of the same queries
+    (their partial sums then line up).
     """
     device = points.device
     count = points.shape[0]
-    size, default_splits = launch_shape(device, count)
+    size, default_splits = launch_shape(device, count, per_thread)
     splits = default_splits if splits is None else splits
     if like is not None:
-        order, size, splits = like.order, like.size, like.splits
+        order, size, splits, per_thread = like.order, like.size, like.splits, like.per_thread
     elif spatial_order:
-        keys = wp.empty(2 * count, dtype=wp.int32, device=device)
-        values = wp.empty(2 * count, dtype=wp.int32, device=device)
-        extent = float(np.max(b.hi - b.lo))
-        scale = 1024.0 / extent if extent > 0 else 0.0
-        wp.launch(_k.morton_keys, dim=count, inputs=[points, wp.vec3(*b.lo), scale], outputs=[keys, values],
-                  device=device, record_tape=False)
-        wp.utils.radix_sort_pairs(keys, values, count, end_bit=30)
-        order = values[:count]
+        order = query_order(points, b, cache, pool)
     else:
-        order = wp.empty(count, dtype=wp.int32, device=device)
+        order = _empty(pool, device, count, wp.int32)
         wp.launch(_k.iota, dim=count, outputs=[order], device=device, record_tape=False)
     num_groups = (count + size - 1) // size
-    box_lo = wp.empty(num_groups, dtype=wp.vec3i, device=device)
-    box_hi = wp.empty(num_groups, dtype=wp.vec3i, device=device)
-    total = wp.empty(num_groups, dtype=wp.int32, device=device)
+    box_lo = _empty(pool, device, num_groups, wp.vec3i)
+    box_hi = _empty(pool, device, num_groups, wp.vec3i)
     # float32 rounding of p +- r must never drop a cell that holds a source within reach
     margin = 1e-6 * max(float(np.abs(np.concatenate([b.lo, b.hi])).max()), b.rmax)
+    pad = float(pad + margin)
     wp.launch(
         _k.group_boxes, dim=num_groups,
-        inputs=[points, order, radius, float(pad + margin), count, size, cells.origin, cells.inv_h, cells.dims,
-                cells.first],
-        outputs=[box_lo, box_hi, total], device=device, record_tape=False,
+        inputs=[points, order, radius, pad, count, size, per_thread, cells.origin, cells.inv_h, cells.dims,
+                SPREAD if size > per_thread else 1.0e30],
+        outputs=[box_lo, box_hi], device=device, record_tape=False,
     )
-    return Groups(order, box_lo, box_hi, total, size, splits, count, num_groups * size)
+    return Groups(order, box_lo, box_hi, size, splits, count, num_groups * size, pad, per_thread)
 
 
 def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strategy: str, reach: float,
          pad: float = 0.0, *, splits: int | None = None, select: tuple | None = None,
-         like: Groups | None = None) -> tuple[Cells, Groups]:
+         like: Groups | None = None, per_thread: int = 1, cache: dict | None = None,
+         pool: Pool | None = None) -> tuple[Cells, Groups]:
     """Cells over ``sources`` (those kept by ``select``, see :func:`build_cells`) and groups of the query ``points``
     (balls ``radius[k] + pad``, typically ``reach``) for a concrete "grid" or "dense" strategy."""
     device = points.device
     if strategy == "dense":
-        cells = build_cells(sources, b, None, select)
-        return cells, build_groups(points, radius, pad, cells, b, spatial_order=False, splits=splits, like=like)
-    cells = build_cells(sources, b, cell_size(b, reach, sources.shape[0], device), select)
-    size, _ = launch_shape(device, points.shape[0])
-    groups = build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like)
+        cells = build_cells(sources, b, None, select, pool)
+        return cells, build_groups(points, radius, pad, cells, b, spatial_order=False, splits=splits, like=like,
+                                   per_thread=per_thread, pool=pool)
+    cells = build_cells(sources, b, cell_size(b, reach, sources.shape[0], device), select, pool)
+    size, _ = launch_shape(device, points.shape[0], per_thread)
+    groups = build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
+                          per_thread=per_thread, cache=cache, pool=pool)
     return cells, groups
 
 
@@ -249,12 +330,13 @@ MAX_TIERS = 4
 
 
 def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.array, b: Bounds, strategy: str,
-               *, splits: int | None = None) -> list[tuple[Cells, Groups]]:
+               *, splits: int | None = None, cache: dict | None = None, pool: Pool | None = None
+               ) -> list[tuple[Cells, Groups]]:
     """The traversals of the ball kernels: one over all edges ("dense", or edges of similar lengths), else one per
     edge-length tier, all sharing the query order (their partial sums line up)."""
     if strategy == "dense" or b.lmax <= TIER_BASE * b.lmean:
         pad = 0.5 * b.lmax
-        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits)]
+        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, cache=cache, pool=pool)]
     bounds_ = [-1.0]
     while len(bounds_) < MAX_TIERS and TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1) < b.lmax:
         bounds_.append(TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1))
@@ -263,7 +345,7 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     for lo, hi in zip(bounds_[:-1], bounds_[1:]):
         pad = 0.5 * min(hi, b.lmax)
         p = plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, select=(length, lo, hi),
-                 like=first)
+                 like=first, cache=cache, pool=pool)
         first = first or p[1]
         plans.append(p)
     return plans

@@ -115,14 +115,25 @@ class Mesh:
         """True when every edge has exactly two faces."""
         return self.topology.boundary.shape[0] == 0
 
+    def _memo(self, name: str, compute):
+        """``compute()`` once per vertex array: kept while ``self.vertices`` is the same array object (the arrays
+        of a Mesh are treated as immutable; assigning a new array recomputes)."""
+        hit = self._cache.get(name)
+        if hit is None or hit[0] is not self.vertices:
+            hit = (self.vertices, compute())
+            self._cache[name] = hit
+        return hit[1]
+
     @property
     def mean_edge_length(self) -> float:
         e = self.topology.edges
-        return float(np.linalg.norm(self.vertices[e[:, 0]] - self.vertices[e[:, 1]], axis=1).mean())
+        return self._memo("mean_edge_length", lambda: float(
+            np.linalg.norm(self.vertices[e[:, 0]] - self.vertices[e[:, 1]], axis=1).mean()))
 
     @property
     def bbox_diagonal(self) -> float:
-        return float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))
+        return self._memo("bbox_diagonal",
+                          lambda: float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0))))
 
     def area(self) -> float:
         v = self.vertices.astype(np.float64)

@@ -102,17 +102,21 @@ def edge_fields(mesh: Mesh, *, positions: wp.array | None = None, device=None, r
     Launched as a differentiable kernel: inside a ``wp.Tape`` it is recorded like any Warp launch.
     """
     device = positions.device if positions is not None else get_device(device)
-    x = _positions(mesh, positions, device)
+    return _edge_fields(mesh, _positions(mesh, positions, device), requires_grad)
+
+
+def _edge_fields(mesh: Mesh, x: wp.array, requires_grad: bool = False, pool: _pairs.Pool | None = None) -> EdgeFields:
+    device = x.device
     edges = _edge_array(mesh, device)
     ne = edges.shape[0]
     rg = requires_grad or x.requires_grad
-    f = EdgeFields(
-        edges,
-        wp.empty(ne, dtype=wp.vec3, device=device, requires_grad=rg),
-        wp.empty(ne, dtype=wp.float32, device=device, requires_grad=rg),
-        wp.empty(ne, dtype=wp.float32, device=device, requires_grad=rg),
-        wp.empty(ne, dtype=wp.vec3, device=device, requires_grad=rg),
-    )
+    if rg:
+        pool = None
+
+    def new(dtype):
+        return pool.empty(ne, dtype) if pool is not None else wp.empty(ne, dtype=dtype, device=device, requires_grad=rg)
+
+    f = EdgeFields(edges, new(wp.vec3), new(wp.float32), new(wp.float32), new(wp.vec3))
     wp.launch(_k.edge_geometry, dim=ne, inputs=[x, edges], outputs=[f.mid, f.length, f.angle, f.normal], device=device)
     return f
 
@@ -133,8 +137,9 @@ def _segment_bvh(x: wp.array, f: EdgeFields) -> wp.Bvh:
     return wp.Bvh(lowers, uppers)
 
 
-def _partials(groups: _pairs.Groups, device, *dtypes) -> list:
-    return [wp.empty(groups.dim, dtype=dt, device=device) for dt in dtypes]
+def _partials(groups: _pairs.Groups, device, *dtypes, pool: _pairs.Pool | None = None) -> list:
+    shape = (groups.splits, groups.padded)
+    return [_pairs._empty(pool, device, shape, dt) for dt in dtypes]
 
 
 def _soft_bvh(x, tau_arr, kappa, f, outputs):
@@ -157,34 +162,34 @@ def _soft_bvh(x, tau_arr, kappa, f, outputs):
     return backward
 
 
-def _soft_sources(cells, f: EdgeFields, device) -> tuple[wp.array, wp.array]:
+def _soft_sources(cells, f: EdgeFields, device, pool: _pairs.Pool | None = None) -> tuple[wp.array, wp.array]:
     """Edge midpoints+lengths and angles+normals as vec4s in cell order (one 128-bit load each in the kernels)."""
     E = f.mid.shape[0]
-    pos = wp.empty(E, dtype=wp.vec4, device=device)
-    val = wp.empty(E, dtype=wp.vec4, device=device)
+    pos = _pairs._empty(pool, device, E, wp.vec4)
+    val = _pairs._empty(pool, device, E, wp.vec4)
     wp.launch(_k.pack_soft_sources, dim=E, inputs=[cells.order, f.mid, f.length, f.angle, f.normal],
               outputs=[pos, val], device=device, record_tape=False)
     return pos, val
 
 
-def _ball_sources(cells, x: wp.array, f: EdgeFields, device) -> tuple[wp.array, wp.array, wp.array]:
+def _ball_sources(cells, x: wp.array, f: EdgeFields, device, pool: _pairs.Pool | None = None
+                  ) -> tuple[wp.array, wp.array, wp.array]:
     """Edge segments (start, direction, lengths) and angles+normals as vec4s in cell order."""
     E = f.edges.shape[0]
-    seg_a = wp.empty(E, dtype=wp.vec4, device=device)
-    seg_l = wp.empty(E, dtype=wp.vec4, device=device)
-    val = wp.empty(E, dtype=wp.vec4, device=device)
+    seg_a, seg_l, val = (_pairs._empty(pool, device, E, wp.vec4) for _ in range(3))
     wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
               outputs=[seg_a, seg_l, val], device=device, record_tape=False)
     return seg_a, seg_l, val
 
 
-def _soft_cells(x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str):
+def _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str, pool=None):
     """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered)."""
     device = x.device
     V, E = x.shape[0], f.mid.shape[0]
-    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean)
-    pos, val = _soft_sources(cells, f, device)
-    parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3)
+    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean, per_thread=int(_k.QB), cache=mesh._cache,
+                                pool=pool)
+    pos, val = _soft_sources(cells, f, device, pool)
+    parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3, pool=pool)
     wp.launch(_k.soft_cells, dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
               outputs=parts, device=device, record_tape=False)
     wp.launch(_k.reduce_sums, dim=V, inputs=[groups.order, *parts], outputs=outputs, device=device,
@@ -193,14 +198,15 @@ def _soft_cells(x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str):
 
     def backward():
         (gx,) = _partials(groups, device, wp.vec3)
-        wp.launch(_k.soft_cells_grad_x, dim=groups.dim,
+        wp.launch(_k.soft_cells_grad_x, dim=(groups.splits, groups.padded),
                   inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val, num, den, nsum, H.grad, n.grad],
                   outputs=[gx], device=device, record_tape=False)
         wp.launch(_k.reduce_add_vec3, dim=V, inputs=[groups.order, gx], outputs=[x.grad], device=device,
                   record_tape=False)
         # edge adjoints: each edge gathers over the vertices whose ball (radius tau_k) reaches its midpoint
-        reach = wp.full(E, np.float32(b.rmax), dtype=wp.float32, device=device)
-        vcells, egroups = _pairs.plan(f.mid, reach, x, b, strategy, b.rmax)
+        # (the kernel adds the reach as the groups' pad, so per-edge radii are zero)
+        zero = wp.zeros(E, dtype=wp.float32, device=device)
+        vcells, egroups = _pairs.plan(f.mid, zero, x, b, strategy, b.rmax, b.rmax)
         vpos = wp.empty(V, dtype=wp.vec4, device=device)
         vcoef = wp.empty(V, dtype=wp.vec4, device=device)
         vgs = wp.empty(V, dtype=wp.vec4, device=device)
@@ -258,12 +264,14 @@ def vnc_soft(
     tau_arr = _per_point(tau, V, device, "tau")
     if tape is not None and not x.requires_grad:
         raise ValueError("vnc_soft(tape=...) needs positions given as a wp.array with requires_grad=True")
-    f = edge_fields(mesh, positions=x, device=device)
     rg = x.requires_grad
+    # without a backward pass nothing outlives the call but H and n: the rest is pooled scratch
+    pool = None if (rg or tape is not None) else _pairs.Pool(device, "vnc_soft")
+    f = _edge_fields(mesh, x, pool=pool)
     outputs = [
-        wp.empty(V, dtype=wp.float32, device=device),
-        wp.empty(V, dtype=wp.float32, device=device),
-        wp.empty(V, dtype=wp.vec3, device=device),
+        _pairs._empty(pool, device, V, wp.float32),
+        _pairs._empty(pool, device, V, wp.float32),
+        _pairs._empty(pool, device, V, wp.vec3),
         wp.empty(V, dtype=wp.float32, device=device, requires_grad=rg),
         wp.empty(V, dtype=wp.vec3, device=device, requires_grad=rg),
     ]
@@ -272,7 +280,7 @@ def vnc_soft(
     else:
         b = _pairs.bounds(x, tau_arr)
         concrete = _pairs.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0])
-        backward = _soft_cells(x, tau_arr, float(kappa), f, outputs, b, concrete)
+        backward = _soft_cells(mesh, x, tau_arr, float(kappa), f, outputs, b, concrete, pool)
     H, n = outputs[3], outputs[4]
     if tape is not None:
         tape.record_func(backward=backward, arrays=[H, n, f.mid, f.length, f.angle, f.normal])
@@ -300,19 +308,19 @@ def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, posi
     return _pairs.resolve("auto", device, b, b.rmean + 0.5 * b.lmax, V, E)
 
 
-def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str):
-    """Eqs. (1)-(2) sums per query point: ``(num, den, nsum, H, n)`` (``H``, ``n`` normalized as in Eq. (2))."""
+def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array | None = None):
+    """Eqs. (1)-(2) sums per query point: ``(num, den, nsum, H, n)`` (``H``, ``n`` normalized as in Eq. (2)).
+
+    ``points is x`` (the mesh's vertices on ``device``) marks the vertices as the queries: their Morton order is
+    then kept with the mesh."""
     _pairs.check_strategy(strategy)
-    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    f = edge_fields(mesh, positions=x, device=device)
+    if x is None:
+        x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    pool = _pairs.Pool(device, "ball")
+    f = _edge_fields(mesh, x, pool=pool)
     P = points.shape[0]
-    outputs = [
-        wp.empty(P, dtype=wp.float32, device=device),
-        wp.empty(P, dtype=wp.float32, device=device),
-        wp.empty(P, dtype=wp.vec3, device=device),
-        wp.empty(P, dtype=wp.float32, device=device),
-        wp.empty(P, dtype=wp.vec3, device=device),
-    ]
+    outputs = [_pairs._empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
+    outputs += [wp.empty(P, dtype=wp.float32, device=device), wp.empty(P, dtype=wp.vec3, device=device)]
     if strategy == "bvh":
         bvh = _segment_bvh(x, f)
         wp.launch(_k.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
@@ -323,13 +331,13 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str):
     b = _pairs.bounds(x, radius, f.length)
     # an edge crosses the ball only if its midpoint is within radius + L / 2
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
-    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete)
+    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete,
+                              cache=mesh._cache if points is x else None, pool=pool)
     groups = plans[0][1]
     ns = groups.splits
-    parts = [wp.empty((len(plans) * ns, groups.padded), dtype=dt, device=device)
-             for dt in (wp.float32, wp.float32, wp.vec3)]
+    parts = [pool.empty((len(plans) * ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     for i, (cells, grp) in enumerate(plans):
-        seg_a, seg_l, val = _ball_sources(cells, x, f, device)
+        seg_a, seg_l, val = _ball_sources(cells, x, f, device, pool)
         wp.launch(_k.ball_cells, dim=grp.dim,
                   inputs=[points, radius, g, *grp.args(cells), seg_a, seg_l, val, ns, i * ns],
                   outputs=parts, device=device)
@@ -365,7 +373,7 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
     if kappa is not None:
         wp.launch(_k.gaussian_factor, dim=V, inputs=[radius, float(kappa)], outputs=[g], device=device)
     points = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    outputs = _ball_sums(mesh, points, radius, g, device, strategy)
+    outputs = _ball_sums(mesh, points, radius, g, device, strategy, x=points)
     return outputs[3], outputs[4]
 
 
@@ -398,7 +406,7 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, s
     points_wp = wp.array(np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
     r = _per_point(radius, P, device, "radius")
     g = wp.zeros(P, dtype=wp.float32, device=device)
-    num = _ball_sums(mesh, points_wp, r, g, device, strategy)[0]
+    num = _ball_sums(mesh, points_wp, r, g, device, strategy, x=points_wp if points is None else None)[0]
     out = wp.empty(P, dtype=wp.float32, device=device)
     wp.launch(_k.scaled_copy, dim=P, inputs=[num, 0.5], outputs=[out], device=device)
     return out

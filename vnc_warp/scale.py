@@ -13,7 +13,7 @@ from vnc_warp.kernels import vnc as _k
 from . import _pairs
 from ._device import get_device
 from .mesh import Mesh
-from .operators import _ball_sources, _midpoint_bvh, _positions, _segment_bvh, _soft_sources, edge_fields
+from .operators import _ball_sources, _edge_fields, _midpoint_bvh, _positions, _segment_bvh, _soft_sources
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -97,13 +97,14 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
     _pairs.check_strategy(strategy)
     S, V = t.size, mesh.num_vertices
     x = _positions(mesh, positions, device)
-    f = edge_fields(mesh, positions=x, device=device)
+    pool = _pairs.Pool(device, f"scale_curve/{variant}")
+    f = _edge_fields(mesh, x, pool=pool)
     taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
     H = wp.empty((S, V), dtype=wp.float32, device=device)
     if strategy == "bvh":
         _scale_curve_bvh(x, f, taus_wp, variant, kappa, H)
     else:
-        _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H)
+        _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool)
     mean = wp.zeros(S, dtype=wp.float32, device=device)
     stride = min(V, 256)
     wp.launch(_k.column_mean, dim=(S, stride), inputs=[H, stride, 1.0 / V], outputs=[mean], device=device)
@@ -127,7 +128,7 @@ def _scale_curve_bvh(x, f, taus_wp, variant, kappa, H):
     wp.launch(_k.ratio2d, dim=(S, V), inputs=[num, den], outputs=[H], device=device)
 
 
-def _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H):
+def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool):
     device = x.device
     S, V = H.shape
     E = f.mid.shape[0]
@@ -140,24 +141,26 @@ def _scale_curve_cells(x, f, t, taus_wp, variant, kappa, strategy, H):
     for offset in range(0, S, 16):
         tmax = float(t[min(offset + 16, S) - 1])
         concrete = _pairs.resolve(strategy, device, b, tmax + pad, V, E)
-        radius = wp.full(V, np.float32(tmax), dtype=wp.float32, device=device)
+        radius = pool.empty(V, wp.float32)
+        radius.fill_(np.float32(tmax))
         chunk = replace(b, rmax=tmax, rmean=tmax)
         if soft:
-            plans = [_pairs.plan(x, radius, f.mid, chunk, concrete, tmax, splits=splits)]
+            plans = [_pairs.plan(x, radius, f.mid, chunk, concrete, tmax, splits=splits, cache=mesh._cache, pool=pool)]
         else:
-            plans = _pairs.ball_plans(x, radius, f.mid, f.length, chunk, concrete, splits=splits)
+            plans = _pairs.ball_plans(x, radius, f.mid, f.length, chunk, concrete, splits=splits, cache=mesh._cache,
+                                      pool=pool)
         groups = plans[0][1]
         rows = 16 * len(plans) * groups.splits
-        part_num = wp.empty((rows, groups.padded), dtype=wp.float32, device=device)
-        part_den = wp.empty((rows, groups.padded), dtype=wp.float32, device=device)
+        part_num = pool.empty((rows, groups.padded), wp.float32)
+        part_den = pool.empty((rows, groups.padded), wp.float32)
         for i, (cells, grp) in enumerate(plans):
             if soft:
-                pos, val = _soft_sources(cells, f, device)
+                pos, val = _soft_sources(cells, f, device, pool)
                 wp.launch(_k.soft_cells_multiscale, dim=grp.dim,
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
                           outputs=[part_num, part_den], device=device)
             else:
-                seg_a, seg_l, val = _ball_sources(cells, x, f, device)
+                seg_a, seg_l, val = _ball_sources(cells, x, f, device, pool)
                 wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_a, seg_l, val, grp.splits,
                                   i * grp.splits],

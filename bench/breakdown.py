@@ -1,0 +1,112 @@
+"""Where the time of one operator call goes: host (Python + launches) against device (each kernel).
+
+    python -m bench.breakdown --device cuda:0 --mesh nefertiti.obj --taus 2 8 diag/2 --out breakdown.json
+
+For each operator and scale it reports the wall time of a synchronized call (median), the host time to
+enqueue it (the call without the final synchronization; a call that reads a result on the host in the middle
+includes that wait), the device busy time summed over its kernels and copies, and the kernels by time. This is
+the tool for deciding whether a call is launch-bound (host time close to wall time) or kernel-bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import vnc_warp as vw
+from vnc_warp._device import get_device
+
+from .vnc import MESH_DIR
+
+
+def _tau(mesh: vw.Mesh, spec: str) -> float:
+    if spec.startswith("diag/"):
+        return mesh.bbox_diagonal / float(spec[5:])
+    return float(spec) * mesh.mean_edge_length
+
+
+def _median_ms(fn, device, repeats: int, sync: bool) -> float:
+    out = []
+    for _ in range(repeats):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fn()
+        if sync:
+            wp.synchronize_device(device)
+        out.append(1e3 * (time.perf_counter() - t0))
+    wp.synchronize_device(device)
+    return float(np.median(out))
+
+
+def _kernels(fn, device) -> tuple[float, dict]:
+    if not device.is_cuda:
+        return float("nan"), {}
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    fn()
+    results = wp.timing_end()
+    per: dict[str, list] = {}
+    for r in results:
+        name = re.sub(r"_[0-9a-f]{8}$", "", r.name.replace("forward kernel ", ""))
+        per.setdefault(name, [0.0, 0])
+        per[name][0] += r.elapsed
+        per[name][1] += 1
+    busy = float(sum(v[0] for v in per.values()))
+    top = {k: {"ms": round(v[0], 4), "count": v[1]} for k, v in sorted(per.items(), key=lambda kv: -kv[1][0])}
+    return busy, top
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--mesh", default="nefertiti.obj", help="a file in ../shared/data/meshes or a path")
+    ap.add_argument("--taus", nargs="+", default=["2", "8", "diag/4", "diag/2"],
+                    help="multiples of the mean edge length, or diag/N")
+    ap.add_argument("--ops", nargs="+", default=["soft", "hard", "curve"], choices=["soft", "hard", "curve"])
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    device = get_device(args.device)
+    path = Path(args.mesh) if Path(args.mesh).exists() else MESH_DIR / args.mesh
+    mesh = vw.load_mesh(path)
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    rows = []
+    print(f"{mesh.name}: V={mesh.num_vertices} on {device} ({getattr(device, 'name', device)})")
+    print(f"{'op':6} {'tau':>8} {'wall ms':>9} {'host ms':>9} {'device ms':>10}  kernels (ms x count)")
+    for op in args.ops:
+        for spec in args.taus if op != "curve" else ["16 scales"]:
+            if op == "soft":
+                tau = _tau(mesh, spec)
+                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, positions=x)  # noqa: E731
+            elif op == "hard":
+                tau = _tau(mesh, spec)
+                fn = lambda tau=tau: vw.vnc_hard(mesh, tau, device=device)  # noqa: E731
+            else:
+                c = vw.scale_curve(mesh, positions=x)
+                phi = float(np.median(vw.vnc_auc(c).numpy()))
+
+                def fn(phi=phi):
+                    c = vw.scale_curve(mesh, positions=x)
+                    vw.vnc_auc(c)
+                    vw.adaptive_scale(c, phi=phi)
+            fn()
+            wp.synchronize_device(device)
+            wall = _median_ms(fn, device, args.repeats, True)
+            host = _median_ms(fn, device, args.repeats, False)
+            busy, top = _kernels(fn, device)
+            shown = ", ".join(f"{k} {v['ms']:.3f}x{v['count']}" for k, v in list(top.items())[:6])
+            print(f"{op:6} {spec:>8} {wall:9.3f} {host:9.3f} {busy:10.3f}  {shown}")
+            rows.append({"op": op, "tau": spec, "wall_ms": wall, "host_ms": host, "device_ms": busy, "kernels": top})
+    if args.out:
+        Path(args.out).write_text(json.dumps({"mesh": mesh.name, "V": mesh.num_vertices, "device": str(device),
+                                              "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
