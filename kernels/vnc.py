@@ -502,17 +502,24 @@ def row_span(row: int, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.arr
 
 
 @wp.func
-def thread_box(grp: int, p: wp.vec3, reach: float, box_lo: wp.array(dtype=wp.vec3i), box_hi: wp.array(dtype=wp.vec3i),
-               origin: wp.vec3, inv_h: float, dims: wp.vec3i):
+def thread_span_box(grp: int, plo: wp.vec3, phi: wp.vec3, box_lo: wp.array(dtype=wp.vec3i),
+                    box_hi: wp.array(dtype=wp.vec3i), origin: wp.vec3, inv_h: float, dims: wp.vec3i):
     """Cell box walked by a thread: its group's shared box, or (a group marked ``box_lo.x = -1`` by
-    :func:`group_boxes`, whose balls are far apart) the box of the thread's own ball ``|x - p| <= reach``."""
+    :func:`group_boxes`, whose balls are far apart) the cells of the thread's own extent ``plo..phi``."""
     lo = box_lo[grp]
     hi = box_hi[grp]
     if lo[0] < 0:
-        e = wp.vec3(reach, reach, reach)
-        lo = cell_coord(p - e, origin, inv_h, dims)
-        hi = cell_coord(p + e, origin, inv_h, dims)
+        lo = cell_coord(plo, origin, inv_h, dims)
+        hi = cell_coord(phi, origin, inv_h, dims)
     return lo, hi
+
+
+@wp.func
+def thread_box(grp: int, p: wp.vec3, reach: float, box_lo: wp.array(dtype=wp.vec3i), box_hi: wp.array(dtype=wp.vec3i),
+               origin: wp.vec3, inv_h: float, dims: wp.vec3i):
+    """:func:`thread_span_box` of a thread with one query, the ball ``|x - p| <= reach``."""
+    e = wp.vec3(reach, reach, reach)
+    return thread_span_box(grp, p - e, p + e, box_lo, box_hi, origin, inv_h, dims)
 
 
 # A row of a box with at least this many candidates per split is shared by all splits; shorter rows go whole to
@@ -822,11 +829,7 @@ def soft_cells(
             e = wp.vec3(r + pad)
             tlo = wp.min(tlo, p - e)
             thi = wp.max(thi, p + e)
-    lo = box_lo[g]
-    hi = box_hi[g]
-    if lo[0] < 0:
-        lo = cell_coord(tlo, origin, inv_h, dims)
-        hi = cell_coord(thi, origin, inv_h, dims)
+    lo, hi = thread_span_box(g, tlo, thi, box_lo, box_hi, origin, inv_h, dims)
     nrows = box_rows(lo, hi)
     ns = part_num.shape[0]
     an = vecq()
