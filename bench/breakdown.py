@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 import vnc_warp as vw
+from vnc_warp import _replay
 from vnc_warp._device import get_device
 
 from .vnc import MESH_DIR
@@ -29,6 +30,19 @@ def _tau(mesh: vw.Mesh, spec: str) -> float:
     if spec.startswith("diag/"):
         return mesh.bbox_diagonal / float(spec[5:])
     return float(spec) * mesh.mean_edge_length
+
+
+def load(spec: str, subdivide: int = 0) -> vw.Mesh:
+    """A mesh file (in ../shared/data/meshes or a path), midpoint-subdivided ``subdivide`` times (as bench.vnc's
+    200k and 800k sizes)."""
+    path = Path(spec) if Path(spec).exists() else MESH_DIR / spec
+    mesh = vw.load_mesh(path)
+    if subdivide:
+        tm = mesh.to_trimesh()
+        for _ in range(subdivide):
+            tm = tm.subdivide()
+        mesh = vw.load_mesh(tm, name=f"{path.stem}-sub{subdivide}")
+    return mesh
 
 
 def _median_ms(fn, device, repeats: int, sync: bool) -> float:
@@ -65,15 +79,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default=None)
     ap.add_argument("--mesh", default="nefertiti.obj", help="a file in ../shared/data/meshes or a path")
+    ap.add_argument("--subdivide", type=int, default=0, help="midpoint-subdivide the mesh this many times")
     ap.add_argument("--taus", nargs="+", default=["2", "8", "diag/4", "diag/2"],
                     help="multiples of the mean edge length, or diag/N")
-    ap.add_argument("--ops", nargs="+", default=["soft", "hard", "curve"], choices=["soft", "hard", "curve"])
+    ap.add_argument("--ops", nargs="+", default=["soft", "hard", "curve"], choices=["soft", "soft_x", "hard", "curve"],
+                    help="soft_x: VNC-soft with the positions given as a device array (as a flow step calls it)")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--no-graphs", action="store_true",
+                    help="run every call as launched (no graph replay, vnc_warp._replay), to see its kernels")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     device = get_device(args.device)
-    path = Path(args.mesh) if Path(args.mesh).exists() else MESH_DIR / args.mesh
-    mesh = vw.load_mesh(path)
+    if args.no_graphs:
+        _replay.DEVICES = set()
+    mesh = load(args.mesh, args.subdivide)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     rows = []
     print(f"{mesh.name}: V={mesh.num_vertices} on {device} ({getattr(device, 'name', device)})")
@@ -82,16 +101,19 @@ def main(argv=None) -> int:
         for spec in args.taus if op != "curve" else ["16 scales"]:
             if op == "soft":
                 tau = _tau(mesh, spec)
+                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, device=device)  # noqa: E731
+            elif op == "soft_x":
+                tau = _tau(mesh, spec)
                 fn = lambda tau=tau: vw.vnc_soft(mesh, tau, positions=x)  # noqa: E731
             elif op == "hard":
                 tau = _tau(mesh, spec)
                 fn = lambda tau=tau: vw.vnc_hard(mesh, tau, device=device)  # noqa: E731
             else:
-                c = vw.scale_curve(mesh, positions=x)
+                c = vw.scale_curve(mesh, device=device)
                 phi = float(np.median(vw.vnc_auc(c).numpy()))
 
                 def fn(phi=phi):
-                    c = vw.scale_curve(mesh, positions=x)
+                    c = vw.scale_curve(mesh, device=device)
                     vw.vnc_auc(c)
                     vw.adaptive_scale(c, phi=phi)
             fn()

@@ -305,19 +305,22 @@ def operator_section(b: Bench, mesh: vw.Mesh, info: dict, taus, full: bool) -> N
         common = dict(section="operator", mesh=mesh.name, tau_label=label, tau=tau)
         skip = None if pairs <= lim["grid"] else f"~{pairs:.2g} pairs in reach"
         ref = b.run(Row(name="vnc_soft", variant="auto", **common),
-                    lambda: vw.vnc_soft(mesh, tau, positions=x), skip=skip,
-                    check=lambda: {"chosen": vw.choose_strategy(mesh, tau, positions=x), "pairs_in_reach": pairs})
+                    lambda: vw.vnc_soft(mesh, tau, device=dev), skip=skip,
+                    check=lambda: {"chosen": vw.choose_strategy(mesh, tau, device=dev), "pairs_in_reach": pairs})
         if ref.status == "ok" and not b.args.quick:
-            nbytes = _safe(lambda: peak_bytes(lambda: vw.vnc_soft(mesh, tau, positions=x), dev))
+            nbytes = _safe(lambda: peak_bytes(lambda: vw.vnc_soft(mesh, tau, device=dev), dev))
             if nbytes:
                 ref.extra["peak_MB"] = nbytes / 2**20
                 ref.extra["bytes_per_V+E"] = nbytes / (V + E)
-            ref.extra.update(_safe(lambda: gpu_profile(lambda: vw.vnc_soft(mesh, tau, positions=x), dev)) or {})
+            ref.extra.update(_safe(lambda: gpu_profile(lambda: vw.vnc_soft(mesh, tau, device=dev), dev)) or {})
+        # the same call with the positions given as a device array (a flow step): its bounds are read back
+        b.run(Row(name="vnc_soft", variant="positions", note="positions=wp.array: one read of the bounds from the device",
+                  **common), lambda: vw.vnc_soft(mesh, tau, positions=x), skip=skip, reference=ref)
         for strategy in ("grid", "dense", "bvh") if full else ():
             limit = lim[strategy]
             work = V * E if strategy == "dense" else pairs
             b.run(Row(name="vnc_soft", variant=strategy, **common),
-                  lambda s=strategy: vw.vnc_soft(mesh, tau, positions=x, strategy=s),
+                  lambda s=strategy: vw.vnc_soft(mesh, tau, device=dev, strategy=s),
                   skip=None if work <= limit else f"~{work:.2g} pairs for this strategy", reference=ref,
                   repeats=3 if strategy == "bvh" else None)
         hard_pairs = pairs_in_reach(V, E, A, tau + 0.5 * info["mean_edge_length"])
@@ -397,11 +400,11 @@ def scale_section(b: Bench, mesh: vw.Mesh, info: dict, full: bool) -> None:
     phi = {}
 
     def prepare():
-        curve = vw.scale_curve(mesh, taus, positions=x)
+        curve = vw.scale_curve(mesh, taus, device=dev)
         phi["value"] = 0.5 * float(vw.vnc_auc(curve).numpy().mean())
 
     def curve(strategy="auto"):
-        c = vw.scale_curve(mesh, taus, positions=x, strategy=strategy)
+        c = vw.scale_curve(mesh, taus, device=dev, strategy=strategy)
         vw.vnc_auc(c)
         vw.adaptive_scale(c, taus, phi["value"])
 
@@ -411,7 +414,7 @@ def scale_section(b: Bench, mesh: vw.Mesh, info: dict, full: bool) -> None:
     if skip is None and "value" not in phi:
         skip = "scale curve failed in preparation"
     ref = b.run(Row(name="scale_curve+auc+adaptive", variant="auto", **common), curve, skip=skip,
-                check=lambda: {"chosen": vw.choose_strategy(mesh, float(taus[-1]), positions=x),
+                check=lambda: {"chosen": vw.choose_strategy(mesh, float(taus[-1]), device=dev),
                                **(gpu_profile(curve, dev) if not b.args.quick else {})})
     for strategy in ("grid", "dense", "bvh") if full else ():
         work = V * E if strategy == "dense" else pairs
@@ -420,7 +423,7 @@ def scale_section(b: Bench, mesh: vw.Mesh, info: dict, full: bool) -> None:
               reference=ref, repeats=1 if strategy == "bvh" else None)
     if full:
         b.run(Row(name="16 x vnc_soft", variant="auto", note="one call per scale", **common),
-              lambda: [vw.vnc_soft(mesh, float(t), positions=x) for t in taus], skip=skip, reference=ref)
+              lambda: [vw.vnc_soft(mesh, float(t), device=dev) for t in taus], skip=skip, reference=ref)
     b.run(Row(name="scale_curve (hard)", variant="auto", **common),
           lambda: vw.scale_curve(mesh, taus, "hard", device=dev), skip=skip, reference=ref)
     b.run(Row(name="total_complexity", variant="auto", note="what VNC-Flow evaluates per iteration", **common),

@@ -100,3 +100,25 @@ def test_breakdown_runs_and_reports_every_operator(tmp_path):
     assert [(r["op"], r["tau"]) for r in doc["rows"]] == [("soft", "2"), ("soft", "diag/2"), ("hard", "2"),
                                                             ("hard", "diag/2"), ("curve", "16 scales")]
     assert all(math.isfinite(r["wall_ms"]) and r["wall_ms"] > 0 and math.isfinite(r["host_ms"]) for r in doc["rows"])
+
+
+def test_tune_times_every_setting_and_restores_the_knobs(tmp_path):
+    """``python -m bench.tune`` on the CPU device times every setting of its grid per operator and scale, and leaves
+    the module-level knobs as it found them (no timing is asserted)."""
+    from bench import tune
+    from vnc_warp import _pairs
+    from vnc_warp.kernels import vnc as _k
+
+    before = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, dict(_k.BALL_VARIANT))
+    out = tmp_path / "tune.json"
+    assert tune.main(["--device", "cpu", "--mesh", "spot_lowres.obj", "--taus", "2", "--qb", "4", "--splits", "auto",
+                      "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf", "--ball-kernels", "branchy",
+                      "branchless", "--repeats", "1", "--out", str(out)]) == 0
+    after = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, dict(_k.BALL_VARIANT))
+    assert after == before
+    doc = json.loads(out.read_text())
+    soft = [r for r in doc["rows"] if r["op"] == "soft"]
+    hard = [r for r in doc["rows"] if r["op"] == "hard"]
+    assert len(soft) == 4 and len(hard) == 8  # 2 cells x 2 busy (x 2 ball kernels)
+    assert all(math.isfinite(r["ms"]) and r["ms"] > 0 for r in doc["rows"])
+    assert {r["kernel"] for r in hard} == {"branchy", "branchless"}

@@ -11,7 +11,8 @@ from conftest import real_mesh_path
 from reference import dense_ball_sums, dense_soft
 
 import vnc_warp as vw
-from vnc_warp import _pairs
+from vnc_warp import _pairs, operators
+from vnc_warp.kernels import vnc as _k
 
 STRATEGIES = ["grid", "dense", "bvh"]
 
@@ -25,8 +26,9 @@ def _bumpy_sphere(subdiv=3, seed=0):
 
 @pytest.fixture
 def cuda_launch_shape(monkeypatch):
-    """Groups of 32 queries split over 3 threads each, as on a GPU, on whatever device runs."""
-    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1: (32 * per_thread, 3))
+    """Groups of 32 threads of QB queries each, split over 3 threads per box, as on a GPU, on whatever device runs."""
+    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0: (32 * per_thread, 3))
+    monkeypatch.setattr(operators, "_queries_per_thread", lambda *args: _k.QB)
 
 
 def _taus(mesh):
@@ -50,6 +52,22 @@ def test_soft_matches_dense_float64_every_strategy(strategy, device):
         np.testing.assert_allclose(H.numpy(), Hr.numpy(), rtol=1e-4, atol=1e-5 * np.abs(Hr.numpy()).max(),
                                    err_msg=f"{strategy}, {name}")
         np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"{strategy}, {name}")
+
+
+def test_soft_far_from_the_origin(cuda_launch_shape, device):
+    """VNC-soft equals the float64 dense reference on a mesh 500 units across and 800 units from the origin, at
+    scales from 1.5 mean edge lengths to the whole mesh (float32 offsets of nearby points lose digits there)."""
+    base = _bumpy_sphere()
+    mesh = vw.from_arrays(base.vertices * 250.0 + np.float32(800.0), base.faces)
+    v64 = torch.tensor(mesh.vertices, dtype=torch.float64)
+    l = mesh.mean_edge_length
+    for tau in (1.5 * l, 4.0 * l, 0.7 * mesh.bbox_diagonal):
+        Hr, nr = dense_soft(v64, mesh.faces, tau)
+        for s in ("grid", "dense"):
+            H, n = vw.vnc_soft(mesh, tau, device=device, strategy=s)
+            np.testing.assert_allclose(H.numpy(), Hr.numpy(), rtol=1e-4, atol=1e-5 * np.abs(Hr.numpy()).max(),
+                                       err_msg=f"{s}, tau={tau / l:.1f} l")
+            np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"{s}, tau={tau / l:.1f} l")
 
 
 @pytest.mark.parametrize("spread", [None, 1.01])
@@ -87,17 +105,23 @@ def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
         np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6)
 
 
-def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, device):
+@pytest.mark.parametrize("dense_tier_pairs", [0, 1 << 40], ids=["grid-tiers", "dense-tiers"])
+def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, monkeypatch, device):
     """A mesh whose edges span 0.1 to 3 units (a cylinder's sides and rings) is traversed by the ball kernels in
-    edge-length tiers; Eqs. (1)-(2) (unweighted, where a long edge far from its midpoint still counts) equal the
-    dense float64 reference for every strategy."""
+    edge-length tiers (after the first, each through the grid or, when it has few pairs, densely); Eqs. (1)-(2)
+    (unweighted, where a long edge far from its midpoint still counts) equal the dense float64 reference for every
+    strategy."""
+    monkeypatch.setattr(_pairs, "DENSE_TIER_PAIRS", {"cuda": dense_tier_pairs, "cpu": dense_tier_pairs})
     tm = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=48)
     mesh = vw.load_mesh(tm)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     f = vw.edge_fields(mesh, positions=x)
     tau = wp.full(mesh.num_vertices, 0.4, dtype=wp.float32, device=device)
     b = _pairs.bounds(x, tau, f.length)
-    assert len(_pairs.ball_plans(x, tau, f.mid, f.length, b, "grid")) > 1
+    plans = _pairs.ball_plans(x, tau, f.mid, f.length, b, "grid", tier_size=lambda lo, hi: 1)
+    assert len(plans) > 1
+    dense_tiers = [tuple(c.dims) == (1, 1, 1) for c, _ in plans[1:]]
+    assert all(dense_tiers) if dense_tier_pairs else not any(dense_tiers)
     for r in (0.4, 1.5):
         num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
         for s in STRATEGIES:
@@ -105,6 +129,23 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, device):
             np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"{s}, r={r}")
             got = vw.integrated_mean_curvature(mesh, r, device=device, strategy=s).numpy()
             np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1 {s}, r={r}")
+
+
+def test_threads_with_far_apart_balls(cuda_launch_shape, device):
+    """Ball centres in two clusters at opposite ends of a mesh, so that one thread holds queries from both (its box
+    would span the mesh): it walks each ball's box in turn, and Eq. (1) still equals trimesh's measure, every edge
+    counted once per ball."""
+    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    tm = mesh.to_trimesh()
+    v = mesh.vertices
+    ends = [np.argmin(v[:, 2]), np.argmax(v[:, 2])]
+    # three vertices at each end (overlapping balls: a ball walked twice would be counted twice)
+    pts = np.concatenate([v[np.argsort(np.linalg.norm(v - v[e], axis=1))[:3]] for e in ends])
+    r = 2.0 * mesh.mean_edge_length
+    got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
+    ref = np.array([trimesh.curvature.discrete_mean_curvature_measure(tm, p[None], r)[0] for p in pts])
+    assert np.abs(ref).min() > 1e-4
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=2e-5 * np.abs(ref).max())
 
 
 @pytest.mark.parametrize("strategy", STRATEGIES)
@@ -207,3 +248,17 @@ def test_group_modes_both_exercised(cuda_launch_shape, monkeypatch, device):
         H = vw.vnc_soft(mesh, tau, device=device, strategy="grid")[0].numpy()
         Hb = vw.vnc_soft(mesh, tau, device=device, strategy="bvh")[0].numpy()
         np.testing.assert_allclose(H, Hb, atol=2e-6)
+
+
+def test_busy_traversals_take_more_queries_per_thread_and_splits():
+    """The launch heuristics follow the expected work: a busy traversal (many candidates per query) takes QB queries
+    per thread and more splits on a GPU; a light one, and any on the CPU device, one query per thread."""
+    class FakeGPU:
+        is_cuda, is_cpu, sm_count = True, False, 132
+
+    light, busy = 0.1 * _pairs.BUSY_SOURCES, 10.0 * _pairs.BUSY_SOURCES
+    assert _pairs.queries_per_thread(FakeGPU, light, 4) == 1
+    assert _pairs.queries_per_thread(FakeGPU, busy, 4) == 4
+    assert _pairs.queries_per_thread(wp.get_device("cpu"), busy, 4) == 1
+    assert _pairs.launch_shape(FakeGPU, 50_000, 4, busy)[1] > _pairs.launch_shape(FakeGPU, 50_000, 4, light)[1]
+    assert _pairs.launch_shape(wp.get_device("cpu"), 50_000, 4, busy) == (4, 1)

@@ -39,6 +39,10 @@ _CUDA_GROUP = 32
 _DENSE_FRACTION = 0.9
 # On CUDA, launch count dominates below this many query x source pairs: use the dense traversal.
 _CUDA_SMALL_PAIRS = 1 << 22
+# Grid cell size as a fraction of the typical query radius (see cell_size).
+CELL_FRACTION = 0.5
+# How many ways a box's rows are shared on CUDA; None: enough to fill the device (launch_shape).
+SPLITS = None
 
 
 def check_strategy(strategy: str) -> str:
@@ -48,15 +52,42 @@ def check_strategy(strategy: str) -> str:
     return strategy
 
 
-def launch_shape(device: wp.Device, count: int, per_thread: int = 1) -> tuple[int, int]:
-    """``(group size, splits)`` for ``count`` queries taken ``per_thread`` at a time: one warp of threads per group
-    and enough splits on CUDA to fill the device about twice; one thread per group and no split on the
-    (single-threaded) CPU device."""
+# A traversal expecting at least this many candidate sources per query is busy: it takes twice the splits, and
+# several queries per thread (queries_per_thread). Measured on an H200 (bench/tune.py, docs/results/tune_h200_*.json):
+# 1 query per thread is faster up to 8 mean edge lengths (about 700 candidates), 4 from 16 (about 5000).
+BUSY_SOURCES = 2000.0
+
+
+def expected_sources(b: "Bounds", strategy: str, reach: float, sources: int, device: wp.Device) -> float:
+    """Candidate sources per query of a traversal: all of them ("dense"), else those in a box of cells around a
+    ball of radius ``reach`` (uniform-density estimate, :func:`dense_fraction`)."""
+    if strategy == "dense":
+        return float(sources)
+    return dense_fraction(b, reach, cell_size(b, reach, sources, device)) * sources
+
+
+def queries_per_thread(device: wp.Device, work: float, most: int) -> int:
+    """Queries per thread of the forward traversals: ``most`` on CUDA for a traversal of at least
+    :data:`BUSY_SOURCES` candidates per query, where every source record a warp reads then serves ``most`` queries
+    per thread; else one (small balls: a thread's box is then its own ball's, and a thread never straddles a jump of
+    the Morton curve with a box spanning both sides). One on the CPU."""
+    return most if device.is_cuda and work >= BUSY_SOURCES else 1
+
+
+def launch_shape(device: wp.Device, count: int, per_thread: int = 1, work: float = 0.0) -> tuple[int, int]:
+    """``(group size, splits)`` for ``count`` queries taken ``per_thread`` at a time, each expecting ``work``
+    candidate sources: one warp of threads per group and enough splits on CUDA to fill the device about twice
+    (four times for a busy traversal: its threads wait on loads of long rows, and more of them hide it); one thread
+    per group and no split on the (single-threaded) CPU device."""
     if device.is_cpu:
         return per_thread, 1
+    if SPLITS is not None:
+        return _CUDA_GROUP * per_thread, int(SPLITS)
     threads = -(-count // per_thread)
     resident = 2048 * max(int(getattr(device, "sm_count", 0) or 0), 1)
-    return _CUDA_GROUP * per_thread, int(np.clip((2 * resident) // max(threads, 1), 1, 16 * per_thread ** 0.5))
+    fill = 4 if work >= BUSY_SOURCES else 2
+    cap = (32 if work >= BUSY_SOURCES else 16) * per_thread ** 0.5
+    return _CUDA_GROUP * per_thread, int(np.clip((fill * resident) // max(threads, 1), 1, cap))
 
 
 class Pool:
@@ -68,9 +99,13 @@ class Pool:
     _stores: dict = {}
     LIMIT = 128
 
-    def __init__(self, device: wp.Device, kind: str):
-        key = (device.alias, device.stream.cuda_stream if device.is_cuda else 0)
-        self.store = Pool._stores.setdefault(key, {})
+    def __init__(self, device: wp.Device, kind: str, store: dict | None = None, limit: int | None = LIMIT):
+        """``store``: a dict of buffers of one's own (e.g. the scratch of captured graphs, :mod:`vnc_warp._replay`),
+        else the shared one of the device and stream; ``limit``: buffers kept in it (None: all)."""
+        if store is None:
+            key = (device.alias, device.stream.cuda_stream if device.is_cuda else 0)
+            store = Pool._stores.setdefault(key, {})
+        self.store, self.limit = store, limit
         self.device, self.kind, self.n = device, kind, 0
 
     def empty(self, shape, dtype) -> wp.array:
@@ -80,7 +115,7 @@ class Pool:
         if arr is None:
             arr = wp.empty(shape, dtype=dtype, device=self.device)
         self.store[key] = arr  # most recently used last
-        while len(self.store) > Pool.LIMIT:
+        while self.limit is not None and len(self.store) > self.limit:
             self.store.pop(next(iter(self.store)))
         return arr
 
@@ -134,12 +169,12 @@ def _grid_dims(ext: np.ndarray, h: float) -> np.ndarray:
 
 
 def cell_size(b: Bounds, reach: float, sources: int, device: wp.Device) -> float:
-    """Cell size for balls of typical radius ``reach``: half the radius (a box of cells then overshoots a ball, or
-    a warp's group of balls, by half a radius at most per side), enlarged until the grid has at most
-    ``4 x sources`` cells, so memory stays O(sources)."""
+    """Cell size for balls of typical radius ``reach``: ``CELL_FRACTION`` (half) of the radius (a box of cells then
+    overshoots a ball, or a warp's group of balls, by half a radius at most per side), enlarged until the grid has
+    at most ``4 x sources`` cells, so memory stays O(sources)."""
     ext = np.maximum(b.hi - b.lo, 0.0)
     scale = max(float(ext.max()), float(np.abs(np.concatenate([b.lo, b.hi])).max()), 1e-30)
-    h = max(0.5 * reach, 1e-6 * scale)
+    h = max(CELL_FRACTION * reach, 1e-6 * scale)
     cap = max(4 * sources, 4096)
     for _ in range(64):
         n = float(np.prod(_grid_dims(ext, h).astype(np.float64)))
@@ -191,7 +226,8 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | No
     if h is None and select is None:
         order = _empty(pool, device, n, wp.int32)
         wp.launch(_k.iota, dim=n, outputs=[order], device=device, record_tape=False)
-        first = wp.array(np.array([0, n], dtype=np.int32), device=device)
+        first = _empty(pool, device, 2, wp.int32)
+        wp.launch(_k.one_cell, dim=1, inputs=[n], outputs=[first], device=device, record_tape=False)
         return Cells(order, first, origin, 0.0, wp.vec3i(1, 1, 1))
     dims_np = np.ones(3, dtype=np.int64) if h is None else _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
     inv_h = 0.0 if h is None else 1.0 / h
@@ -254,7 +290,9 @@ def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Po
     key = ("query_order", str(device), count)
     if cache is not None and key in cache:
         return cache[key]
-    keep = None if cache is not None else pool  # a kept order must not be a pooled buffer
+    # a kept order must not be a pooled buffer; one made while capturing is not kept (it is only computed when the
+    # graph runs) and must live as long as the graph: the pool's
+    keep = pool if cache is None or device.is_capturing else None
     keys = _empty(keep, device, 2 * count, wp.int32)
     values = _empty(keep, device, 2 * count, wp.int32)
     extent = float(np.max(b.hi - b.lo))
@@ -263,24 +301,24 @@ def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Po
               device=device, record_tape=False)
     wp.utils.radix_sort_pairs(keys, values, count, end_bit=30)
     order = values[:count]
-    if cache is not None:
+    if cache is not None and not device.is_capturing:  # a captured order is only computed when its graph runs
         cache[key] = order
     return order
 
 
 def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, *,
                  spatial_order: bool, splits: int | None = None, like: Groups | None = None, per_thread: int = 1,
-                 cache: dict | None = None, pool: Pool | None = None) -> Groups:
+                 work: float = 0.0, cache: dict | None = None, pool: Pool | None = None) -> Groups:
     """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``.
 
     ``spatial_order`` sorts the queries along a Morton curve first (:func:`query_order`, kept in ``cache``), so a
     group's balls are close together (only worth it for groups of more than one query over more than one cell).
     ``like``: reuse the order, group size, splits and queries per thread of another traversal of the same queries
-    (their partial sums then line up).
+    (their partial sums then line up). ``work``: expected candidate sources per query (see :func:`launch_shape`).
     """
     device = points.device
     count = points.shape[0]
-    size, default_splits = launch_shape(device, count, per_thread)
+    size, default_splits = launch_shape(device, count, per_thread, work)
     splits = default_splits if splits is None else splits
     if like is not None:
         order, size, splits, per_thread = like.order, like.size, like.splits, like.per_thread
@@ -295,30 +333,44 @@ def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b
     # float32 rounding of p +- r must never drop a cell that holds a source within reach
     margin = 1e-6 * max(float(np.abs(np.concatenate([b.lo, b.hi])).max()), b.rmax)
     pad = float(pad + margin)
-    wp.launch(
-        _k.group_boxes, dim=num_groups,
-        inputs=[points, order, radius, pad, count, size, per_thread, cells.origin, cells.inv_h, cells.dims,
-                SPREAD if size > per_thread else 1.0e30],
-        outputs=[box_lo, box_hi], device=device, record_tape=False,
-    )
+    if tuple(cells.dims) == (1, 1, 1):  # one cell: every box is that cell
+        box_lo.zero_()
+        box_hi.zero_()
+    else:
+        threads = -(-count // per_thread)
+        ext_lo = _empty(pool, device, threads, wp.vec3)
+        ext_hi = _empty(pool, device, threads, wp.vec3)
+        own = _empty(pool, device, threads, wp.float32)
+        wp.launch(_k.thread_extents, dim=threads,
+                  inputs=[points, order, radius, pad, count, per_thread, cells.origin, cells.inv_h, cells.dims],
+                  outputs=[ext_lo, ext_hi, own], device=device, record_tape=False)
+        wp.launch(_k.group_boxes, dim=num_groups,
+                  inputs=[ext_lo, ext_hi, own, size // per_thread, cells.origin, cells.inv_h, cells.dims,
+                          SPREAD if size > per_thread else 1.0e30],
+                  outputs=[box_lo, box_hi], device=device, record_tape=False)
     return Groups(order, box_lo, box_hi, size, splits, count, num_groups * size, pad, per_thread)
 
 
 def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strategy: str, reach: float,
          pad: float = 0.0, *, splits: int | None = None, select: tuple | None = None,
          like: Groups | None = None, per_thread: int = 1, cache: dict | None = None,
-         pool: Pool | None = None) -> tuple[Cells, Groups]:
-    """Cells over ``sources`` (those kept by ``select``, see :func:`build_cells`) and groups of the query ``points``
-    (balls ``radius[k] + pad``, typically ``reach``) for a concrete "grid" or "dense" strategy."""
+         pool: Pool | None = None, selected: int | None = None) -> tuple[Cells, Groups]:
+    """Cells over ``sources`` (those kept by ``select``, see :func:`build_cells`; ``selected``: how many, when
+    known) and groups of the query ``points`` (balls ``radius[k] + pad``, typically ``reach``) for a concrete
+    "grid" or "dense" strategy."""
     device = points.device
-    if strategy == "dense":
-        cells = build_cells(sources, b, None, select, pool)
-        return cells, build_groups(points, radius, pad, cells, b, spatial_order=False, splits=splits, like=like,
-                                   per_thread=per_thread, pool=pool)
-    cells = build_cells(sources, b, cell_size(b, reach, sources.shape[0], device), select, pool)
+    count = float(sources.shape[0] if selected is None else selected)
     size, _ = launch_shape(device, points.shape[0], per_thread)
+    if strategy == "dense":
+        # queries in Morton order here too: a warp's balls then lie together, and a source beyond the cut-off of
+        # all of them costs it no exp2
+        cells = build_cells(sources, b, None, select, pool)
+        return cells, build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
+                                   per_thread=per_thread, work=count, cache=cache, pool=pool)
+    h = cell_size(b, reach, sources.shape[0], device)
+    cells = build_cells(sources, b, h, select, pool)
     groups = build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
-                          per_thread=per_thread, cache=cache, pool=pool)
+                          per_thread=per_thread, work=dense_fraction(b, reach, h) * count, cache=cache, pool=pool)
     return cells, groups
 
 
@@ -329,14 +381,22 @@ TIER_BASE = 1.5
 MAX_TIERS = 4
 
 
+# A tier with at most this many query x edge pairs in all is traversed densely: a few long edges are cheaper to
+# test against every query than to reach through a grid whose boxes they widen. Per device kind: a GPU tests 2^26
+# pairs in tens of microseconds, the CPU device (one thread) in about a second.
+DENSE_TIER_PAIRS = {"cuda": 1 << 26, "cpu": 1 << 16}
+
+
 def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.array, b: Bounds, strategy: str,
-               *, splits: int | None = None, cache: dict | None = None, pool: Pool | None = None
-               ) -> list[tuple[Cells, Groups]]:
+               *, splits: int | None = None, per_thread: int = 1, cache: dict | None = None, pool: Pool | None = None,
+               tier_size=None) -> list[tuple[Cells, Groups]]:
     """The traversals of the ball kernels: one over all edges ("dense", or edges of similar lengths), else one per
-    edge-length tier, all sharing the query order (their partial sums line up)."""
+    edge-length tier, all sharing the query order (their partial sums line up). ``tier_size(lo, hi)``: the number
+    of edges with ``lo < length <= hi``, when known on the host; a tier of few pairs is then traversed densely."""
     if strategy == "dense" or b.lmax <= TIER_BASE * b.lmean:
         pad = 0.5 * b.lmax
-        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, cache=cache, pool=pool)]
+        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, per_thread=per_thread,
+                     cache=cache, pool=pool)]
     bounds_ = [-1.0]
     while len(bounds_) < MAX_TIERS and TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1) < b.lmax:
         bounds_.append(TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1))
@@ -344,8 +404,12 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     plans, first = [], None
     for lo, hi in zip(bounds_[:-1], bounds_[1:]):
         pad = 0.5 * min(hi, b.lmax)
-        p = plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, select=(length, lo, hi),
-                 like=first, cache=cache, pool=pool)
+        n = None if tier_size is None else int(tier_size(lo, hi))
+        # the first tier (the short edges) sets the query order and splits that every tier shares: never dense
+        limit = DENSE_TIER_PAIRS["cuda" if points.device.is_cuda else "cpu"]
+        small = first is not None and n is not None and n * points.shape[0] <= limit
+        p = plan(points, radius, mid, b, "dense" if small else strategy, b.rmean + pad, pad, splits=splits,
+                 select=(length, lo, hi), like=first, per_thread=per_thread, cache=cache, pool=pool, selected=n)
         first = first or p[1]
         plans.append(p)
     return plans

@@ -24,7 +24,7 @@ import warp as wp
 
 from vnc_warp.kernels import vnc as _k
 
-from . import _pairs
+from . import _pairs, _replay
 from ._device import get_device
 from .mesh import Mesh, MeshError
 
@@ -64,9 +64,57 @@ def _edge_array(mesh: Mesh, device) -> wp.array:
     return arr
 
 
+def _mesh_vertices(mesh: Mesh, device) -> wp.array:
+    """``mesh.vertices`` on ``device``, copied once per vertex array (a Mesh's arrays are treated as immutable);
+    read-only for every caller."""
+    return mesh._memo(("vertices", str(device)), lambda: wp.array(mesh.vertices, dtype=wp.vec3, device=device))
+
+
+def _host_bounds(mesh: Mesh, x: wp.array, radius_stats, lengths: bool = False) -> _pairs.Bounds | None:
+    """The :class:`~vnc_warp._pairs.Bounds` of a call, from the host when ``x`` is the mesh's own vertices and the radii
+    came from the host (``radius_stats = (max, mean)``), else None. Without a read from the device the launches that
+    follow are queued while the device still works on earlier ones."""
+    kept = mesh._cache.get(("vertices", str(x.device)), (None, None))
+    if radius_stats is None or kept[0] is not mesh.vertices or x is not kept[1]:
+        return None
+    lo, hi = mesh._memo("bbox", lambda: (mesh.vertices.min(0).astype(np.float64),
+                                         mesh.vertices.max(0).astype(np.float64)))
+    lmax = lmean = 0.0
+    if lengths:
+        def stats():
+            e = mesh.topology.interior
+            v = mesh.vertices
+            L = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)
+            # float32 lengths on the device may round up past the float64 maximum: one part in 1e6 of slack
+            return float(L.max()) * (1.0 + 1e-6), float(L.mean())
+        lmax, lmean = mesh._memo("interior_length_stats", stats)
+    return _pairs.Bounds(lo, hi, float(radius_stats[0]), float(radius_stats[1]), lmax, lmean)
+
+
+def _tier_sizes(mesh: Mesh):
+    """``size(lo, hi)``: how many interior edges of the mesh's own vertices have ``lo < length <= hi``."""
+    def lengths():
+        e = mesh.topology.interior
+        v = mesh.vertices
+        return np.sort(np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1).astype(np.float32))
+
+    L = mesh._memo("interior_lengths_sorted", lengths)
+    # float32 lengths on the device can differ in the last bit: count a tier generously (the count only decides
+    # how a tier is traversed, never which edges are in it)
+    return lambda lo, hi: int(np.searchsorted(L, hi * (1 + 1e-6), "right") - np.searchsorted(L, lo * (1 - 1e-6), "right"))
+
+
+def _radius_stats(value):
+    """``(max, mean)`` of a scalar or host array of radii (None for a ``wp.array``: its values are on the device)."""
+    if isinstance(value, wp.array):
+        return None
+    arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float32)
+    return float(arr.max()), float(arr.astype(np.float64).mean())
+
+
 def _positions(mesh: Mesh, positions, device) -> wp.array:
     if positions is None:
-        return wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+        return _mesh_vertices(mesh, device)
     if not isinstance(positions, wp.array) or positions.dtype != wp.vec3:
         raise TypeError("positions must be a wp.array of wp.vec3")
     if positions.shape[0] != mesh.num_vertices:
@@ -76,8 +124,9 @@ def _positions(mesh: Mesh, positions, device) -> wp.array:
     return positions
 
 
-def _per_point(value, count: int, device, what: str) -> wp.array:
-    """A positive, finite scalar or (count,) array as a float32 wp.array on ``device``."""
+def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = None) -> wp.array:
+    """A positive, finite scalar or (count,) array as a float32 wp.array on ``device`` (a scalar's array from
+    ``pool``, when given)."""
     if isinstance(value, wp.array):
         if value.shape != (count,) or value.dtype != wp.float32:
             raise ValueError(f"{what}: expected a ({count},) float32 array, got {value.shape} {value.dtype}")
@@ -87,6 +136,10 @@ def _per_point(value, count: int, device, what: str) -> wp.array:
         v = float(arr)
         if not (np.isfinite(v) and v > 0.0):
             raise ValueError(f"{what} must be positive and finite, got {v}")
+        if pool is not None:
+            arr = pool.empty(count, wp.float32)
+            arr.fill_(np.float32(v))
+            return arr
         return wp.full(count, np.float32(v), dtype=wp.float32, device=device)
     if arr.shape != (count,):
         raise ValueError(f"{what}: expected a scalar or shape ({count},), got {arr.shape}")
@@ -174,23 +227,29 @@ def _soft_sources(cells, f: EdgeFields, device, pool: _pairs.Pool | None = None)
 
 def _ball_sources(cells, x: wp.array, f: EdgeFields, device, pool: _pairs.Pool | None = None
                   ) -> tuple[wp.array, wp.array, wp.array]:
-    """Edge segments (start, direction, lengths) and angles+normals as vec4s in cell order."""
+    """Edge segments (midpoint, half-vector) and angles+normals as vec4s in cell order."""
     E = f.edges.shape[0]
-    seg_a, seg_l, val = (_pairs._empty(pool, device, E, wp.vec4) for _ in range(3))
+    seg_m, seg_h, val = (_pairs._empty(pool, device, E, wp.vec4) for _ in range(3))
     wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
-              outputs=[seg_a, seg_l, val], device=device, record_tape=False)
-    return seg_a, seg_l, val
+              outputs=[seg_m, seg_h, val], device=device, record_tape=False)
+    return seg_m, seg_h, val
+
+
+def _queries_per_thread(device, b: _pairs.Bounds, strategy: str, reach: float, sources: int) -> int:
+    """Queries per thread of a forward traversal (:func:`vnc_warp._pairs.queries_per_thread`, at most ``QB``)."""
+    return _pairs.queries_per_thread(device, _pairs.expected_sources(b, strategy, reach, sources, device), _k.QB)
 
 
 def _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str, pool=None):
     """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered)."""
     device = x.device
     V, E = x.shape[0], f.mid.shape[0]
-    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean, per_thread=int(_k.QB), cache=mesh._cache,
+    qb = _queries_per_thread(device, b, strategy, b.rmean, E)
+    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean, per_thread=qb, cache=mesh._cache,
                                 pool=pool)
     pos, val = _soft_sources(cells, f, device, pool)
     parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3, pool=pool)
-    wp.launch(_k.soft_cells, dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
+    wp.launch(_k.soft_cells_kernel(qb), dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
               outputs=parts, device=device, record_tape=False)
     wp.launch(_k.reduce_sums, dim=V, inputs=[groups.order, *parts], outputs=outputs, device=device,
               record_tape=False)
@@ -260,31 +319,59 @@ def vnc_soft(
     _pairs.check_strategy(strategy)
     device = positions.device if positions is not None else get_device(device)
     x = _positions(mesh, positions, device)
-    V = mesh.num_vertices
-    tau_arr = _per_point(tau, V, device, "tau")
     if tape is not None and not x.requires_grad:
         raise ValueError("vnc_soft(tape=...) needs positions given as a wp.array with requires_grad=True")
     rg = x.requires_grad
+    t = _host_scalar(tau, "tau")
+    if t is not None and positions is None and tape is None and strategy != "bvh":
+        # a call fixed by its arguments: replayed from a captured graph from its second time on (vnc_warp._replay)
+        key = ("vnc_soft", t, float(kappa), strategy)
+        H, n = _replay.call(mesh, device, key, "vnc_soft",
+                            lambda pool, fresh: _soft_call(mesh, x, t, float(kappa), strategy, pool, fresh)[0][3:])
+        return H, n
     # without a backward pass nothing outlives the call but H and n: the rest is pooled scratch
     pool = None if (rg or tape is not None) else _pairs.Pool(device, "vnc_soft")
-    f = _edge_fields(mesh, x, pool=pool)
-    outputs = [
-        _pairs._empty(pool, device, V, wp.float32),
-        _pairs._empty(pool, device, V, wp.float32),
-        _pairs._empty(pool, device, V, wp.vec3),
-        wp.empty(V, dtype=wp.float32, device=device, requires_grad=rg),
-        wp.empty(V, dtype=wp.vec3, device=device, requires_grad=rg),
-    ]
-    if strategy == "bvh":
-        backward = _soft_bvh(x, tau_arr, float(kappa), f, outputs)
-    else:
-        b = _pairs.bounds(x, tau_arr)
-        concrete = _pairs.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0])
-        backward = _soft_cells(mesh, x, tau_arr, float(kappa), f, outputs, b, concrete, pool)
+    outputs, f, backward = _soft_call(mesh, x, tau, float(kappa), strategy, pool, True)
     H, n = outputs[3], outputs[4]
     if tape is not None:
         tape.record_func(backward=backward, arrays=[H, n, f.mid, f.length, f.angle, f.normal])
     return H, n
+
+
+def _host_scalar(value, what: str) -> float | None:
+    """``value`` as a float when it is a scalar given on the host (checked positive and finite), else None."""
+    if isinstance(value, wp.array) or (hasattr(value, "requires_grad") and value.requires_grad) or np.ndim(value) != 0:
+        return None
+    v = float(value.detach().cpu() if hasattr(value, "detach") else value)
+    if not (np.isfinite(v) and v > 0.0):
+        raise ValueError(f"{what} must be positive and finite, got {v}")
+    return v
+
+
+def _soft_call(mesh, x, tau, kappa: float, strategy: str, pool, fresh: bool):
+    """The launches of one VNC-soft call: ``([num, den, nsum, H, n], edge fields, backward closure)``.
+
+    ``pool``: scratch (None: new arrays, kept by the backward closure); ``fresh``: ``H`` and ``n`` are new arrays
+    (else from ``pool``: a captured call's outputs, see :mod:`vnc_warp._replay`)."""
+    device = x.device
+    V = mesh.num_vertices
+    rg = x.requires_grad
+    tau_arr = _per_point(tau, V, device, "tau", pool)
+    f = _edge_fields(mesh, x, pool=pool)
+    outputs = [_pairs._empty(pool, device, V, wp.float32), _pairs._empty(pool, device, V, wp.float32),
+               _pairs._empty(pool, device, V, wp.vec3)]
+    if fresh:
+        outputs += [wp.empty(V, dtype=wp.float32, device=device, requires_grad=rg),
+                    wp.empty(V, dtype=wp.vec3, device=device, requires_grad=rg)]
+    else:
+        outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
+    if strategy == "bvh":
+        backward = _soft_bvh(x, tau_arr, kappa, f, outputs)
+    else:
+        b = _host_bounds(mesh, x, _radius_stats(tau)) or _pairs.bounds(x, tau_arr)
+        concrete = _pairs.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0])
+        backward = _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b, concrete, pool)
+    return outputs, f, backward
 
 
 def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, positions: wp.array | None = None) -> str:
@@ -300,27 +387,30 @@ def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, posi
     V = mesh.num_vertices
     tau_arr = _per_point(tau, V, device, "tau")
     E = mesh.topology.num_interior
+    stats = _radius_stats(tau)
     if variant == "soft":
-        b = _pairs.bounds(x, tau_arr)
+        b = _host_bounds(mesh, x, stats) or _pairs.bounds(x, tau_arr)
         return _pairs.resolve("auto", device, b, b.rmean, V, E)
     f = edge_fields(mesh, positions=x, device=device)
-    b = _pairs.bounds(x, tau_arr, f.length)
+    b = _host_bounds(mesh, x, stats, lengths=True) or _pairs.bounds(x, tau_arr, f.length)
     return _pairs.resolve("auto", device, b, b.rmean + 0.5 * b.lmax, V, E)
 
 
-def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array | None = None):
+def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array | None = None,
+               radius_stats=None, pool: _pairs.Pool | None = None, fresh: bool = True):
     """Eqs. (1)-(2) sums per query point: ``(num, den, nsum, H, n)`` (``H``, ``n`` normalized as in Eq. (2)).
 
     ``points is x`` (the mesh's vertices on ``device``) marks the vertices as the queries: their Morton order is
-    then kept with the mesh."""
+    then kept with the mesh. ``radius_stats``: ``(max, mean)`` of ``radius`` when known on the host. ``pool``: the
+    scratch (default: the device's); ``fresh``: ``H`` and ``n`` are new arrays (else from ``pool``)."""
     _pairs.check_strategy(strategy)
     if x is None:
-        x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    pool = _pairs.Pool(device, "ball")
+        x = _mesh_vertices(mesh, device)
+    pool = pool or _pairs.Pool(device, "ball")
     f = _edge_fields(mesh, x, pool=pool)
     P = points.shape[0]
     outputs = [_pairs._empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
-    outputs += [wp.empty(P, dtype=wp.float32, device=device), wp.empty(P, dtype=wp.vec3, device=device)]
+    outputs += [_pairs._empty(None if fresh else pool, device, P, dt) for dt in (wp.float32, wp.vec3)]
     if strategy == "bvh":
         bvh = _segment_bvh(x, f)
         wp.launch(_k.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
@@ -328,21 +418,37 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
         wp.launch(_k.normalize_sums, dim=P, inputs=outputs[:3], outputs=outputs[3:], device=device)
         return outputs
     E = f.mid.shape[0]
-    b = _pairs.bounds(x, radius, f.length)
+    b = _host_bounds(mesh, x, radius_stats, lengths=True) or _pairs.bounds(x, radius, f.length)
     # an edge crosses the ball only if its midpoint is within radius + L / 2
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
-    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete,
-                              cache=mesh._cache if points is x else None, pool=pool)
+    qb = _queries_per_thread(device, b, concrete, b.rmean + 0.5 * b.lmax, E)
+    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, per_thread=qb,
+                              cache=mesh._cache if points is x else None, pool=pool,
+                              tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
     groups = plans[0][1]
     ns = groups.splits
     parts = [pool.empty((len(plans) * ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
+    kernel = _k.ball_cells_kernel(groups.per_thread, **_k.BALL_VARIANT)
     for i, (cells, grp) in enumerate(plans):
-        seg_a, seg_l, val = _ball_sources(cells, x, f, device, pool)
-        wp.launch(_k.ball_cells, dim=grp.dim,
-                  inputs=[points, radius, g, *grp.args(cells), seg_a, seg_l, val, ns, i * ns],
+        seg_m, seg_h, val = _ball_sources(cells, x, f, device, pool)
+        wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, ns, i * ns],
                   outputs=parts, device=device)
     wp.launch(_k.reduce_sums, dim=P, inputs=[groups.order, *parts], outputs=outputs, device=device)
     return outputs
+
+
+def _ball_call(mesh: Mesh, device, tau, kappa: float | None, strategy: str, pool: _pairs.Pool, fresh: bool):
+    """The launches of VNC-hard / Eq. (1) at the vertices: ``(num, den, nsum, H, n)``; ``kappa=None``: w = 1."""
+    V = mesh.num_vertices
+    radius = _per_point(tau, V, device, "tau", pool)
+    g = pool.empty(V, wp.float32)
+    if kappa is None:
+        g.zero_()
+    else:
+        wp.launch(_k.gaussian_factor, dim=V, inputs=[radius, float(kappa)], outputs=[g], device=device)
+    points = _mesh_vertices(mesh, device)
+    return _ball_sums(mesh, points, radius, g, device, strategy, x=points, radius_stats=_radius_stats(tau),
+                      pool=pool, fresh=fresh)
 
 
 def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
@@ -365,15 +471,16 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
         ``(H, n)``: (V,) float32 and (V,) vec3, on ``device``.
     """
     device = get_device(device)
-    V = mesh.num_vertices
-    radius = _per_point(tau, V, device, "tau")
     if kappa is not None and not (kappa > 0.0):
         raise ValueError(f"kappa must be positive or None, got {kappa}")
-    g = wp.zeros(V, dtype=wp.float32, device=device)
-    if kappa is not None:
-        wp.launch(_k.gaussian_factor, dim=V, inputs=[radius, float(kappa)], outputs=[g], device=device)
-    points = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    outputs = _ball_sums(mesh, points, radius, g, device, strategy, x=points)
+    _pairs.check_strategy(strategy)
+    k = None if kappa is None else float(kappa)
+    t = _host_scalar(tau, "tau")
+    if t is not None and strategy != "bvh":
+        H, n = _replay.call(mesh, device, ("vnc_hard", t, k, strategy), "ball",
+                            lambda pool, fresh: _ball_call(mesh, device, t, k, strategy, pool, fresh)[3:])
+        return H, n
+    outputs = _ball_call(mesh, device, tau, k, strategy, _pairs.Pool(device, "ball"), True)
     return outputs[3], outputs[4]
 
 
@@ -394,6 +501,15 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, s
         (P,) float32 on ``device``, in mesh units (length x angle).
     """
     device = get_device(device)
+    t = _host_scalar(radius, "radius")
+    if points is None and t is not None and strategy != "bvh":
+        def run(pool, fresh):
+            num = _ball_call(mesh, device, t, None, strategy, pool, fresh)[0]
+            out = _pairs._empty(None if fresh else pool, device, mesh.num_vertices, wp.float32)
+            wp.launch(_k.scaled_copy, dim=mesh.num_vertices, inputs=[num, 0.5], outputs=[out], device=device)
+            return [out]
+
+        return _replay.call(mesh, device, ("integrated_mean_curvature", t, strategy), "ball", run)[0]
     if points is None:
         pts = mesh.vertices
     else:
@@ -403,10 +519,12 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, s
         if not np.isfinite(pts).all():
             raise ValueError("points contain NaN or infinite coordinates")
     P = pts.shape[0]
-    points_wp = wp.array(np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
+    points_wp = _mesh_vertices(mesh, device) if points is None else wp.array(
+        np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
     r = _per_point(radius, P, device, "radius")
     g = wp.zeros(P, dtype=wp.float32, device=device)
-    num = _ball_sums(mesh, points_wp, r, g, device, strategy, x=points_wp if points is None else None)[0]
+    num = _ball_sums(mesh, points_wp, r, g, device, strategy, x=points_wp if points is None else None,
+                     radius_stats=_radius_stats(radius))[0]
     out = wp.empty(P, dtype=wp.float32, device=device)
     wp.launch(_k.scaled_copy, dim=P, inputs=[num, 0.5], outputs=[out], device=device)
     return out

@@ -13,7 +13,8 @@ from vnc_warp.kernels import vnc as _k
 from . import _pairs
 from ._device import get_device
 from .mesh import Mesh
-from .operators import _ball_sources, _edge_fields, _midpoint_bvh, _positions, _segment_bvh, _soft_sources
+from .operators import (_ball_sources, _edge_fields, _host_bounds, _midpoint_bvh, _positions, _segment_bvh,
+                        _soft_sources)
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -133,7 +134,8 @@ def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool
     S, V = H.shape
     E = f.mid.shape[0]
     soft = variant == "soft"
-    b = _pairs.bounds(x, wp.full(V, np.float32(t[-1]), dtype=wp.float32, device=device), None if soft else f.length)
+    b = _host_bounds(mesh, x, (float(t[-1]), float(t[-1])), lengths=not soft) or _pairs.bounds(
+        x, wp.full(V, np.float32(t[-1]), dtype=wp.float32, device=device), None if soft else f.length)
     pad = 0.0 if soft else 0.5 * b.lmax
     k = 0.0 if kappa is None else float(kappa)  # kappa = 0: unweighted scales
     # 32 sums per scale chunk and thread: fewer splits than a single-scale traversal
@@ -160,9 +162,9 @@ def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
                           outputs=[part_num, part_den], device=device)
             else:
-                seg_a, seg_l, val = _ball_sources(cells, x, f, device, pool)
+                seg_m, seg_h, val = _ball_sources(cells, x, f, device, pool)
                 wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
-                          inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_a, seg_l, val, grp.splits,
+                          inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_m, seg_h, val, grp.splits,
                                   i * grp.splits],
                           outputs=[part_num, part_den], device=device)
         wp.launch(_k.reduce_multiscale, dim=(min(16, S - offset), V), inputs=[groups.order, part_num, part_den, offset],
