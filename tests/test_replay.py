@@ -45,9 +45,9 @@ def test_repeated_calls_replay_and_match_plain_calls(op, replay_everywhere, devi
         "hard_unweighted": lambda **kw: vw.vnc_hard(mesh, tau, kappa=None, device=device, **kw)[0],
         "eq1": lambda **kw: vw.integrated_mean_curvature(mesh, tau, device=device, **kw),
     }[op]
-    outs = [call() for _ in range(4)]  # plain, capture + replay, replay, replay
+    outs = [call() for _ in range(5)]  # plain, on the graph's scratch, capture + replay, replay, replay
     assert len(_graphs(mesh, device)) == 1
-    assert len({id(o) for o in outs}) == 4  # every call returns arrays of its own
+    assert len({id(o) for o in outs}) == 5  # every call returns arrays of its own
     oracle = call(strategy="bvh").numpy()
     monkeypatch.setattr(_replay, "DEVICES", set())
     plain = call().numpy()
@@ -60,6 +60,7 @@ def test_replayed_outputs_are_not_aliased(replay_everywhere, device):
     mesh = _mesh()
     tau = 2.5 * mesh.mean_edge_length
     H1, n1 = vw.vnc_soft(mesh, tau, device=device)
+    vw.vnc_soft(mesh, tau, device=device)  # on the graph's scratch
     H2, n2 = vw.vnc_soft(mesh, tau, device=device)  # captured and replayed
     ref = H2.numpy().copy()
     H2.fill_(123.0)
@@ -74,7 +75,7 @@ def test_replayed_outputs_are_not_aliased(replay_everywhere, device):
 def test_new_vertices_invalidate_the_graphs(replay_everywhere, device):
     mesh = _mesh()
     tau = 3.0 * mesh.mean_edge_length
-    for _ in range(3):
+    for _ in range(4):
         vw.vnc_soft(mesh, tau, device=device)
     assert _graphs(mesh, device)
     moved = mesh.vertices * np.float32(1.5)
@@ -91,11 +92,15 @@ def test_graph_count_is_bounded(replay_everywhere, device, monkeypatch):
     mesh = _mesh()
     taus = [k * mesh.mean_edge_length for k in (2.0, 3.0, 4.0, 5.0)]
     for t in taus:
-        for _ in range(2):
+        for _ in range(3):
             vw.vnc_soft(mesh, t, device=device)
     kept = _graphs(mesh, device)
     assert len(kept) == 2
     assert {k[1] for k in kept} == {taus[2], taus[3]}  # the least recently used went first
+    for t in taus:  # the graphs kept still replay right; the others run again as at first
+        H = vw.vnc_soft(mesh, t, device=device)[0].numpy()
+        Hb = vw.vnc_soft(mesh, t, device=device, strategy="bvh")[0].numpy()
+        np.testing.assert_allclose(H, Hb, atol=2e-6)
 
 
 def test_no_replay_inside_a_users_capture(replay_everywhere, device):

@@ -4,9 +4,9 @@ A call of :func:`~vnc_warp.vnc_soft`, :func:`~vnc_warp.vnc_hard` or :func:`~vnc_
 (at the vertices) on a mesh's own vertices, with scales given on the host, launches the same kernels with the same
 arguments every time: nothing in it is read back from the device (the bounds come from the host, see
 ``operators._host_bounds``). Such a call is identified by a key (operator, scales, kappa, strategy). The first call
-with a key runs as usual; the second captures its launches into a graph (``wp.ScopedCapture``) with scratch that
-belongs to the mesh; that call and every later one replay the graph (one launch) and copy the results into fresh
-arrays, so a call costs the device time and tens of microseconds of host time instead of about a millisecond of
+with a key runs as usual; the second runs with scratch that belongs to the mesh (allocated there, outside any
+capture, so that no graph owns it); the third captures its launches into a graph (``wp.ScopedCapture``) over that
+scratch; that call and every later one replay the graph (one launch) and copy the results into fresh arrays, so a call costs the device time and tens of microseconds of host time instead of about a millisecond of
 Python and launch overhead.
 
 The graphs live with the mesh (``mesh._cache``, dropped when ``mesh.vertices`` is replaced) and at most
@@ -31,7 +31,8 @@ DEVICES = {"cuda"}
 # captured graphs kept per mesh, device and stream
 MAX_GRAPHS = 8
 
-_SEEN = "seen"  # a key called once: the next call captures
+_SEEN = "seen"  # a key called once: the next call allocates the graph's scratch
+_WARM = "warm"  # a key whose scratch exists: the next call captures
 _PLAIN = "plain"  # a key whose capture failed: always run as usual
 
 
@@ -74,6 +75,12 @@ def call(mesh, device: wp.Device, key: tuple, kind: str, run) -> list:
             _trim(table)
         return run(Pool(device, kind), True)
     if state == _SEEN:
+        # the scratch of the graph is allocated here, outside any capture: memory allocated while capturing would
+        # belong to that graph, and the graphs of a mesh share their scratch (a graph dropped later must not take it)
+        table.entries[key] = _WARM
+        outs = run(Pool(device, kind, store=table.store, limit=None), False)
+        return [wp.clone(o) for o in outs]
+    if state == _WARM:
         pool = Pool(device, kind, store=table.store, limit=None)
         try:
             with wp.ScopedCapture(device=device, force_module_load=False) as capture:
