@@ -421,7 +421,9 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     b = _host_bounds(mesh, x, radius_stats, lengths=True) or _pairs.bounds(x, radius, f.length)
     # an edge crosses the ball only if its midpoint is within radius + L / 2
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
-    qb = _queries_per_thread(device, b, concrete, b.rmean + 0.5 * b.lmax, E)
+    # the work of the first (short-edge) tier, which the query grouping serves, decides the queries per thread
+    tiered = concrete != "dense" and b.lmax > _pairs.TIER_BASE * b.lmean
+    qb = _queries_per_thread(device, b, concrete, b.rmean + 0.5 * (_pairs.TIER_BASE * b.lmean if tiered else b.lmax), E)
     plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, per_thread=qb,
                               cache=mesh._cache if points is x else None, pool=pool,
                               tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
