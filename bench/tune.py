@@ -35,10 +35,12 @@ from .breakdown import _tau, load
 from .vnc import measure
 
 
-# kernel variants of VNC-hard: the chord of every candidate, or only behind the test that its line meets the ball
+# kernel variants of VNC-hard: the chord of every candidate, or only behind the test that its line meets the ball,
+# and that behind a test of the midpoint's distance
 BALL_KERNELS = {
     "branchy": {"branchless": False},
     "branchless": {"branchless": True},
+    "prefilter": {"branchless": True, "prefilter": True},
 }
 
 

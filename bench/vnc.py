@@ -112,18 +112,24 @@ def measure(fn, device: wp.Device, *, target_s: float, max_repeats: int, min_rep
 def peak_bytes(fn, device: wp.Device) -> int | None:
     """Peak Warp allocation on ``device`` during one call (``wp.ScopedMemoryTracker``), None if unreadable.
 
-    The operators keep their scratch buffers between calls (``vnc_warp._pairs.Pool``): they are dropped first, so
-    the call allocates, and is charged for, all of its memory."""
+    The operators keep their scratch buffers between calls (``vnc_warp._pairs.Pool``) and replay repeated calls
+    from graphs over scratch of their own (``vnc_warp._replay``): the pool is dropped first and replay is off for
+    the call, so it allocates, and is charged for, all of its memory (a replayed call holds the same scratch)."""
+    from vnc_warp import _replay
     from vnc_warp._pairs import Pool
 
     Pool.clear()
     _synchronize(device)
     out = io.StringIO()
-    with wp.ScopedMemoryTracker("bench", print=False) as tracker:
-        tracker.clear()
-        fn()
-        _synchronize(device)
-        tracker.report(file=out)
+    replay, _replay.DEVICES = _replay.DEVICES, set()
+    try:
+        with wp.ScopedMemoryTracker("bench", print=False) as tracker:
+            tracker.clear()
+            fn()
+            _synchronize(device)
+            tracker.report(file=out)
+    finally:
+        _replay.DEVICES = replay
     units = {"B": 1, "KB": 1 << 10, "MB": 1 << 20, "GB": 1 << 30, "TB": 1 << 40}
     text = out.getvalue()
     block = text.split("Peak usage:", 1)[1] if "Peak usage:" in text else ""
