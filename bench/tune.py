@@ -38,9 +38,10 @@ from .vnc import measure
 # kernel variants of VNC-hard: the chord of every candidate, or only behind the test that its line meets the ball,
 # and that behind a test of the midpoint's distance
 BALL_KERNELS = {
-    "branchy": {"branchless": False},
-    "branchless": {"branchless": True},
+    "branchy": {"branchless": False, "prefilter": False},
+    "branchless": {"branchless": True, "prefilter": False},
     "prefilter": {"branchless": True, "prefilter": True},
+    "auto": {"branchless": True, "prefilter": None},
 }
 
 
@@ -80,7 +81,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cell", nargs="+", type=float, default=[0.5, 1.0])
     ap.add_argument("--spread", nargs="+", type=float, default=[8.0, 2.0])
     ap.add_argument("--busy", nargs="+", type=float, default=[2000.0])
-    ap.add_argument("--ball-kernels", nargs="+", default=["branchless"], choices=list(BALL_KERNELS))
+    ap.add_argument("--ball-kernels", nargs="+", default=["auto"], choices=list(BALL_KERNELS))
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
