@@ -14,12 +14,15 @@ exactly those pairs, so they give the same result up to float32 rounding; they d
 * ``"auto"``: ``"dense"`` when the balls' boxes would cover most of the grid anyway (or, on CUDA, when
   there are fewer than 4M pairs in all, where launch count dominates), otherwise ``"grid"``.
 
-The split of each box's rows over several threads (``splits``) only raises occupancy on the GPU; partial
-sums are added in a fixed order afterwards, so every strategy is deterministic. The forward VNC-soft kernel
-takes several queries per thread, so that each source it reads serves all of them. Scratch buffers come from a
-:class:`Pool` and the queries' Morton order is kept with the mesh: both only save host time. The ball kernels
+The split of each box's rows over several threads (``splits``: whole rows dealt out in turn when a box has many,
+parts of every row when it has few) only raises occupancy on the GPU; partial sums are added in a fixed order
+afterwards, so every strategy is deterministic. A busy traversal (:data:`BUSY_SOURCES` candidates per query) takes
+more splits and several queries per thread (:func:`queries_per_thread`), so that each source it reads serves all of
+them. Scratch buffers come from a :class:`Pool` and the queries' Morton order is kept with the mesh: both only save
+host time (as does :mod:`vnc_warp._replay`, which replays repeated calls from captured graphs). The ball kernels
 (Eqs. 1-2) reach an edge from up to half its length beyond the radius, so they traverse the edges in tiers
-of similar length (:func:`ball_plans`): a few long edges, common in scans, do not widen every query's box.
+of similar length (:func:`ball_plans`): a few long edges, common in scans, do not widen every query's box, and a tier
+of few of them is tested against every query instead.
 """
 
 from __future__ import annotations

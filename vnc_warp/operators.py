@@ -12,7 +12,9 @@ Speed: every operator takes ``strategy=`` ("auto", "grid", "dense" or "bvh"), th
 the cut-off are found (see ``vnc_warp/_pairs.py``). All strategies sum over the same pairs; "auto" picks
 per call from the scale and the mesh's extent, so that no scale falls off a cliff: a uniform grid with
 warp-coherent traversal while the balls are small, an all-pairs traversal when they cover most of the
-mesh. :func:`choose_strategy` tells which one it picks.
+mesh. :func:`choose_strategy` tells which one it picks. A call on the mesh's own vertices with a scale given on the
+host is replayed from a captured graph from its third time on (:mod:`vnc_warp._replay`); it returns new arrays
+every time.
 """
 
 from __future__ import annotations
