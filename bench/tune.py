@@ -35,13 +35,11 @@ from .breakdown import _tau, load
 from .vnc import measure
 
 
-# kernel variants of VNC-hard: the chord of every candidate, or only behind the test that its line meets the ball,
-# and that behind a test of the midpoint's distance
+# kernel variants of VNC-hard: the midpoint prefilter off, on, or on for grid traversals only (the default)
 BALL_KERNELS = {
-    "branchy": {"branchless": False, "prefilter": False},
-    "branchless": {"branchless": True, "prefilter": False},
-    "prefilter": {"branchless": True, "prefilter": True},
-    "auto": {"branchless": True, "prefilter": None},
+    "plain": {"prefilter": False},
+    "prefilter": {"prefilter": True},
+    "auto": {"prefilter": None},
 }
 
 

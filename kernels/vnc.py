@@ -948,15 +948,15 @@ def soft_cells_kernel(qb: int):
 _ball_cells_kernels = {}
 
 
-def ball_cells_kernel(qb: int, branchless: bool = True, prefilter: bool = False):
+def ball_cells_kernel(qb: int, prefilter: bool = False):
     """The edge/ball traversal kernel of Eqs. (1)-(2) with ``qb`` queries per thread (compiled once per variant).
 
-    ``branchless`` (the default; 25-35 % faster from 4 mean edge lengths up on an H200, ``bench/tune.py``) evaluates
-    the chord only behind the one test that the edge's line meets the ball; otherwise every candidate goes through
-    :func:`chord` and a test of its length. (Reading two edges per iteration was no faster.) ``prefilter`` rejects an
-    edge whose midpoint is beyond the radius plus its half length before anything else.
+    The chord is evaluated behind the one test that the edge's line meets the ball (on an H200 25-35 % faster from 4
+    mean edge lengths up than :func:`chord` and a test of its length for every candidate, and no slower below;
+    reading two edges per iteration was no faster: ``docs/results/tune_h200_kernels.json``). ``prefilter`` first
+    rejects an edge whose midpoint is beyond the radius plus its half length (``tune_h200_prefilter.json``).
     """
-    key = (qb, branchless, prefilter)
+    key = (qb, prefilter)
     if key in _ball_cells_kernels:
         return _ball_cells_kernels[key]
     vq = wp.types.vector(length=qb, dtype=wp.float32)
@@ -1050,29 +1050,19 @@ def ball_cells_kernel(qb: int, branchless: bool = True, prefilter: bool = False)
                         near = cc <= t * t
                     if near:
                         ch = cx * sh[0] + cy * sh[1] + cz * sh[2]
-                        if wp.static(branchless):
-                            disc = ch * ch - hh * (cc - r2[q])
-                            if disc > 0.0:
-                                # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both ends
-                                # inside gets u1 = -1, u2 = 1 (its whole length), a degenerate one (1 / hh = 0) nothing
-                                sq = wp.sqrt(disc)
-                                u1 = wp.max((-ch - sq) * sm[3], -1.0)
-                                u2 = wp.min((-ch + sq) * sm[3], 1.0)
-                                w = wp.max(u2 - u1, 0.0) * sh[3] * exp2(cc * gl[q])
-                                an[q] += w * ev[0]
-                                ad[q] += w
-                                ax[q] += w * ev[1]
-                                ay[q] += w * ev[2]
-                                az[q] += w * ev[3]
-                        else:
-                            l_in = chord(cc, ch, hh, sm[3], sh[3], r2[q])
-                            if l_in > 0.0:
-                                w = l_in * exp2(cc * gl[q])
-                                an[q] += w * ev[0]
-                                ad[q] += w
-                                ax[q] += w * ev[1]
-                                ay[q] += w * ev[2]
-                                az[q] += w * ev[3]
+                        disc = ch * ch - hh * (cc - r2[q])
+                        if disc > 0.0:
+                            # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both ends inside
+                            # gets u1 = -1, u2 = 1 (its whole length), a degenerate one (1 / hh = 0) nothing
+                            sq = wp.sqrt(disc)
+                            u1 = wp.max((-ch - sq) * sm[3], -1.0)
+                            u2 = wp.min((-ch + sq) * sm[3], 1.0)
+                            w = wp.max(u2 - u1, 0.0) * sh[3] * exp2(cc * gl[q])
+                            an[q] += w * ev[0]
+                            ad[q] += w
+                            ax[q] += w * ev[1]
+                            ay[q] += w * ev[2]
+                            az[q] += w * ev[3]
         for q in range(qb):
             if t0 + q < count:
                 part_num[row0 + s, t0 + q] = an[q]
@@ -1085,7 +1075,7 @@ def ball_cells_kernel(qb: int, branchless: bool = True, prefilter: bool = False)
 
 # the variant of the ball kernel the operators launch (bench/tune.py times the others); prefilter None: on for grid
 # traversals (3-5 % faster on an H200), off for the dense one (13 % slower there: every candidate is near)
-BALL_VARIANT = {"branchless": True, "prefilter": None}
+BALL_VARIANT = {"prefilter": None}
 soft_cells = soft_cells_kernel(QB)
 
 
