@@ -1076,7 +1076,6 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
 # the variant of the ball kernel the operators launch (bench/tune.py times the others); prefilter None: on for grid
 # traversals (3-5 % faster on an H200), off for the dense one (13 % slower there: every candidate is near)
 BALL_VARIANT = {"prefilter": None}
-soft_cells = soft_cells_kernel(QB)
 
 
 @wp.kernel(enable_backward=False)
@@ -1136,7 +1135,7 @@ def soft_cells_grad_x(
     n_grad: wp.array(dtype=wp.vec3),
     part_gx: wp.array2d(dtype=wp.vec3),
 ):
-    """Adjoint of :func:`soft_cells` w.r.t. the query vertex (the ``x_grad`` part of :func:`soft_backward`),
+    """Adjoint of :func:`soft_cells_kernel` w.r.t. the query vertex (the ``x_grad`` part of :func:`soft_backward`),
     gathered over the same pairs: ``sum_j -2 g w_kj (gN L_j alpha_j + gD L_j + gS . L_j n_j) (x_k - m_j)``."""
     s, t = wp.tid()
     if t >= count:
@@ -1249,7 +1248,7 @@ def soft_cells_grad_edges(
     part_c: wp.array2d(dtype=wp.vec3),
     part_m: wp.array2d(dtype=wp.vec3),
 ):
-    """Adjoint of :func:`soft_cells` w.r.t. the edge quantities, gathered per edge over the vertices that reach it:
+    """Adjoint of :func:`soft_cells_kernel` w.r.t. the edge quantities, gathered per edge over the vertices that reach it:
     ``A = sum gN w``, ``B = sum gD w``, ``C = sum gS w`` and ``M = sum g w (gN alpha + gD + gS . n_j) (x_k - m_j)``."""
     s, t = wp.tid()
     if t >= count:
