@@ -980,14 +980,14 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
         seg_h: wp.array(dtype=wp.vec4),
         val: wp.array(dtype=wp.vec4),
         splits: int,
-        row0: int,
+        accumulate: int,
         part_num: wp.array2d(dtype=float),
         part_den: wp.array2d(dtype=float),
         part_n: wp.array2d(dtype=wp.vec3),
     ):
         """Exact edge/ball sums of Eqs. (1)-(2), partial sums of split ``s`` (of ``splits``) for the ``qb``
-        consecutive sorted queries of thread ``u``, written to row ``row0 + s`` (each edge-length tier has rows of
-        its own).
+        consecutive sorted queries of thread ``u``, written to row ``s`` (``accumulate``: added to it, as the
+        edge-length tiers after the first are, one launch after another on one stream).
 
         ``num = sum alpha delta w l``, ``den = sum w l``, ``n = sum w l n_j`` with ``l`` the chord inside the ball
         of radius ``radius[k]`` and ``w = exp(-g[k] |p - m_j|^2)`` (``g = 0``: w = 1). Every edge record read
@@ -1065,9 +1065,14 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
                             az[q] += w * ev[3]
         for q in range(qb):
             if t0 + q < count:
-                part_num[row0 + s, t0 + q] = an[q]
-                part_den[row0 + s, t0 + q] = ad[q]
-                part_n[row0 + s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
+                if accumulate != 0:
+                    part_num[s, t0 + q] = part_num[s, t0 + q] + an[q]
+                    part_den[s, t0 + q] = part_den[s, t0 + q] + ad[q]
+                    part_n[s, t0 + q] = part_n[s, t0 + q] + wp.vec3(ax[q], ay[q], az[q])
+                else:
+                    part_num[s, t0 + q] = an[q]
+                    part_den[s, t0 + q] = ad[q]
+                    part_n[s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
 
     _ball_cells_kernels[key] = ball_cells
     return ball_cells

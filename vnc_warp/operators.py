@@ -431,14 +431,14 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
                               tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
     groups = plans[0][1]
     ns = groups.splits
-    parts = [pool.empty((len(plans) * ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
+    parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     variant = dict(_k.BALL_VARIANT)
     if variant.get("prefilter") is None:
         variant["prefilter"] = concrete == "grid"
     kernel = _k.ball_cells_kernel(groups.per_thread, **variant)
     for i, (cells, grp) in enumerate(plans):
         seg_m, seg_h, val = _ball_sources(cells, x, f, device, pool)
-        wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, ns, i * ns],
+        wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, ns, int(i > 0)],
                   outputs=parts, device=device)
     wp.launch(_k.reduce_sums, dim=P, inputs=[groups.order, *parts], outputs=outputs, device=device)
     return outputs
