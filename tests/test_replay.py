@@ -134,3 +134,22 @@ def test_host_bounds_match_the_device_bounds(scale, offset, device):
     other = wp.array(mesh.vertices, dtype=wp.vec3, device=dev)
     assert _host_bounds(mesh, other, (1.0, 1.0)) is None
     assert _host_bounds(mesh, x, None) is None
+
+
+def test_replay_can_be_turned_off_and_on(device):
+    mesh = _mesh()
+    tau = 3.0 * mesh.mean_edge_length
+    old = vw.set_graph_replay()
+    try:
+        for _ in range(4):
+            vw.vnc_soft(mesh, tau, device=device)
+        assert not _graphs(mesh, device)
+        vw.set_graph_replay("cpu", "cuda")
+        for _ in range(3):
+            vw.vnc_soft(mesh, tau, device=device)
+        assert len(_graphs(mesh, device)) == 1
+        with pytest.raises(ValueError, match="device kinds"):
+            vw.set_graph_replay("tpu")
+    finally:
+        vw.set_graph_replay(*old)
+    assert _replay.DEVICES == old

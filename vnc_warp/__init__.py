@@ -12,6 +12,7 @@ from .plot import line_plot, scatter_plot
 from .sdf import sdf_grid, signed_distance
 from .remesh import sdf_remesh, validate_surface
 from .operators import STRATEGIES, choose_strategy
+from ._replay import set_graph_replay
 from . import figures
 # `vw.flow` is the function (the contract); the module stays importable as `vnc_warp.flow`.
 from .flow import FlowError, FlowParams, Trajectory, flow, flow_steps, sphericity, total_complexity  # noqa: E402

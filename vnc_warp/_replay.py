@@ -24,7 +24,7 @@ import warp as wp
 
 from ._pairs import Pool
 
-__all__ = ["DEVICES", "MAX_GRAPHS", "call", "forget"]
+__all__ = ["DEVICES", "MAX_GRAPHS", "call", "forget", "set_graph_replay"]
 
 # device kinds ("cuda", "cpu") whose repeated calls are replayed
 DEVICES = {"cuda"}
@@ -47,6 +47,22 @@ class _Graphs:
 def _table(mesh, device: wp.Device) -> _Graphs:
     stream = device.stream.cuda_stream if device.is_cuda else 0
     return mesh._memo(("replays", device.alias, stream), _Graphs)
+
+
+def set_graph_replay(*kinds: str) -> set:
+    """The device kinds (``"cuda"``, ``"cpu"``) whose repeated operator calls are replayed from captured graphs
+    (default: ``"cuda"``); no argument turns replay off. Returns the previous set. Graphs already captured stay with
+    their meshes (:func:`forget` drops them).
+
+    >>> old = vnc_warp.set_graph_replay()          # every call launched as usual
+    >>> vnc_warp.set_graph_replay(*old)            # back
+    """
+    global DEVICES
+    bad = set(kinds) - {"cuda", "cpu"}
+    if bad:
+        raise ValueError(f"device kinds are 'cuda' and 'cpu', got {sorted(bad)}")
+    old, DEVICES = DEVICES, set(kinds)
+    return old
 
 
 def forget(mesh) -> None:
