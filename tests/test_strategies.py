@@ -11,8 +11,7 @@ from conftest import real_mesh_path
 from reference import dense_ball_sums, dense_soft
 
 import vnc_warp as vw
-from vnc_warp import _pairs, operators
-from vnc_warp.kernels import vnc as _k
+from vnc_warp import _pairs
 
 STRATEGIES = ["grid", "dense", "bvh"]
 
@@ -28,7 +27,7 @@ def _bumpy_sphere(subdiv=3, seed=0):
 def cuda_launch_shape(monkeypatch):
     """Groups of 32 threads of QB queries each, split over 3 threads per box, as on a GPU, on whatever device runs."""
     monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0: (32 * per_thread, 3))
-    monkeypatch.setattr(operators, "_queries_per_thread", lambda *args: _k.QB)
+    monkeypatch.setattr(_pairs, "queries_per_thread", lambda device, work, most: most)
 
 
 def _taus(mesh):
@@ -242,7 +241,7 @@ def test_group_modes_both_exercised(cuda_launch_shape, monkeypatch, device):
         tau = factor * mesh.mean_edge_length
         radius = wp.full(mesh.num_vertices, tau, dtype=wp.float32, device=device)
         b = _pairs.bounds(x, radius)
-        _, groups = _pairs.plan(x, radius, f.mid, b, "grid", b.rmean, per_thread=4)
+        _, groups = _pairs.plan(x, radius, f.mid, b, "grid", b.rmean, max_per_thread=4)
         flagged = groups.box_lo.numpy()[:, 0] < 0
         assert flagged.any() == expect_per_thread, (factor, flagged.mean())
         H = vw.vnc_soft(mesh, tau, device=device, strategy="grid")[0].numpy()

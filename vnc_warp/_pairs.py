@@ -61,14 +61,6 @@ def check_strategy(strategy: str) -> str:
 BUSY_SOURCES = 2000.0
 
 
-def expected_sources(b: "Bounds", strategy: str, reach: float, sources: int, device: wp.Device) -> float:
-    """Candidate sources per query of a traversal: all of them ("dense"), else those in a box of cells around a
-    ball of radius ``reach`` (uniform-density estimate, :func:`dense_fraction`)."""
-    if strategy == "dense":
-        return float(sources)
-    return dense_fraction(b, reach, cell_size(b, reach, sources, device)) * sources
-
-
 def queries_per_thread(device: wp.Device, work: float, most: int) -> int:
     """Queries per thread of the forward traversals: ``most`` on CUDA for a traversal of at least
     :data:`BUSY_SOURCES` candidates per query, where every source record a warp reads then serves ``most`` queries
@@ -356,24 +348,27 @@ def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b
 
 def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strategy: str, reach: float,
          pad: float = 0.0, *, splits: int | None = None, select: tuple | None = None,
-         like: Groups | None = None, per_thread: int = 1, cache: dict | None = None,
+         like: Groups | None = None, max_per_thread: int = 1, cache: dict | None = None,
          pool: Pool | None = None, selected: int | None = None) -> tuple[Cells, Groups]:
     """Cells over ``sources`` (those kept by ``select``, see :func:`build_cells`; ``selected``: how many, when
     known) and groups of the query ``points`` (balls ``radius[k] + pad``, typically ``reach``) for a concrete
-    "grid" or "dense" strategy."""
+    "grid" or "dense" strategy, with up to ``max_per_thread`` queries per thread (:func:`queries_per_thread`, from
+    the expected candidates per query that also set the splits)."""
     device = points.device
     count = float(sources.shape[0] if selected is None else selected)
-    size, _ = launch_shape(device, points.shape[0], per_thread)
     if strategy == "dense":
-        # queries in Morton order here too: a warp's balls then lie together, and a source beyond the cut-off of
-        # all of them costs it no exp2
-        cells = build_cells(sources, b, None, select, pool)
-        return cells, build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
-                                   per_thread=per_thread, work=count, cache=cache, pool=pool)
-    h = cell_size(b, reach, sources.shape[0], device)
+        h = None
+        work = count
+    else:
+        h = cell_size(b, reach, sources.shape[0], device)
+        work = dense_fraction(b, reach, h) * count
+    per_thread = queries_per_thread(device, work, max_per_thread)
+    size, _ = launch_shape(device, points.shape[0], per_thread)
+    # queries in Morton order for the dense traversal too: a warp's balls then lie together, and a source beyond the
+    # cut-off of all of them costs it no exp2
     cells = build_cells(sources, b, h, select, pool)
     groups = build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
-                          per_thread=per_thread, work=dense_fraction(b, reach, h) * count, cache=cache, pool=pool)
+                          per_thread=per_thread, work=work, cache=cache, pool=pool)
     return cells, groups
 
 
@@ -391,15 +386,16 @@ DENSE_TIER_PAIRS = {"cuda": 1 << 26, "cpu": 1 << 16}
 
 
 def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.array, b: Bounds, strategy: str,
-               *, splits: int | None = None, per_thread: int = 1, cache: dict | None = None, pool: Pool | None = None,
-               tier_size=None) -> list[tuple[Cells, Groups]]:
+               *, splits: int | None = None, max_per_thread: int = 1, cache: dict | None = None,
+               pool: Pool | None = None, tier_size=None) -> list[tuple[Cells, Groups]]:
     """The traversals of the ball kernels: one over all edges ("dense", or edges of similar lengths), else one per
-    edge-length tier, all sharing the query order (their partial sums line up). ``tier_size(lo, hi)``: the number
-    of edges with ``lo < length <= hi``, when known on the host; a tier of few pairs is then traversed densely."""
+    edge-length tier, all sharing the query order and queries per thread (their partial sums line up; the first tier,
+    the short edges, decides them). ``tier_size(lo, hi)``: the number of edges with ``lo < length <= hi``, when known
+    on the host; a tier of few pairs is then traversed densely."""
     if strategy == "dense" or b.lmax <= TIER_BASE * b.lmean:
         pad = 0.5 * b.lmax
-        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits, per_thread=per_thread,
-                     cache=cache, pool=pool)]
+        return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits,
+                     max_per_thread=max_per_thread, cache=cache, pool=pool)]
     bounds_ = [-1.0]
     while len(bounds_) < MAX_TIERS and TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1) < b.lmax:
         bounds_.append(TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1))
@@ -412,7 +408,8 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
         limit = DENSE_TIER_PAIRS["cuda" if points.device.is_cuda else "cpu"]
         small = first is not None and n is not None and n * points.shape[0] <= limit
         p = plan(points, radius, mid, b, "dense" if small else strategy, b.rmean + pad, pad, splits=splits,
-                 select=(length, lo, hi), like=first, per_thread=per_thread, cache=cache, pool=pool, selected=n)
+                 select=(length, lo, hi), like=first, max_per_thread=max_per_thread, cache=cache, pool=pool,
+                 selected=n)
         first = first or p[1]
         plans.append(p)
     return plans

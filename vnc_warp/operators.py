@@ -83,24 +83,25 @@ def _host_bounds(mesh: Mesh, x: wp.array, radius_stats, lengths: bool = False) -
                                          mesh.vertices.max(0).astype(np.float64)))
     lmax = lmean = 0.0
     if lengths:
-        def stats():
-            e = mesh.topology.interior
-            v = mesh.vertices
-            L = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)
-            # float32 lengths on the device may round up past the float64 maximum: one part in 1e6 of slack
-            return float(L.max()) * (1.0 + 1e-6), float(L.mean())
-        lmax, lmean = mesh._memo("interior_length_stats", stats)
+        L = _interior_lengths(mesh)
+        # float32 lengths on the device may round up past the host's: one part in 1e6 of slack
+        lmax, lmean = float(L[-1]) * (1.0 + 1e-6), float(L.mean(dtype=np.float64))
     return _pairs.Bounds(lo, hi, float(radius_stats[0]), float(radius_stats[1]), lmax, lmean)
 
 
-def _tier_sizes(mesh: Mesh):
-    """``size(lo, hi)``: how many interior edges of the mesh's own vertices have ``lo < length <= hi``."""
+def _interior_lengths(mesh: Mesh) -> np.ndarray:
+    """The interior edges' lengths on the host, sorted (once per vertex array)."""
     def lengths():
         e = mesh.topology.interior
         v = mesh.vertices
         return np.sort(np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1).astype(np.float32))
 
-    L = mesh._memo("interior_lengths_sorted", lengths)
+    return mesh._memo("interior_lengths_sorted", lengths)
+
+
+def _tier_sizes(mesh: Mesh):
+    """``size(lo, hi)``: how many interior edges of the mesh's own vertices have ``lo < length <= hi``."""
+    L = _interior_lengths(mesh)
     # float32 lengths on the device can differ in the last bit: count a tier generously (the count only decides
     # how a tier is traversed, never which edges are in it)
     return lambda lo, hi: int(np.searchsorted(L, hi * (1 + 1e-6), "right") - np.searchsorted(L, lo * (1 - 1e-6), "right"))
@@ -135,9 +136,7 @@ def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = 
         return value if value.device == device else value.to(device)
     arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float64)
     if arr.ndim == 0:
-        v = float(arr)
-        if not (np.isfinite(v) and v > 0.0):
-            raise ValueError(f"{what} must be positive and finite, got {v}")
+        v = _host_scalar(arr, what)
         if pool is not None:
             arr = pool.empty(count, wp.float32)
             arr.fill_(np.float32(v))
@@ -237,21 +236,15 @@ def _ball_sources(cells, x: wp.array, f: EdgeFields, device, pool: _pairs.Pool |
     return seg_m, seg_h, val
 
 
-def _queries_per_thread(device, b: _pairs.Bounds, strategy: str, reach: float, sources: int) -> int:
-    """Queries per thread of a forward traversal (:func:`vnc_warp._pairs.queries_per_thread`, at most ``QB``)."""
-    return _pairs.queries_per_thread(device, _pairs.expected_sources(b, strategy, reach, sources, device), _k.QB)
-
-
 def _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy: str, pool=None):
     """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered)."""
     device = x.device
     V, E = x.shape[0], f.mid.shape[0]
-    qb = _queries_per_thread(device, b, strategy, b.rmean, E)
-    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean, per_thread=qb, cache=mesh._cache,
+    cells, groups = _pairs.plan(x, tau_arr, f.mid, b, strategy, b.rmean, max_per_thread=_k.QB, cache=mesh._cache,
                                 pool=pool)
     pos, val = _soft_sources(cells, f, device, pool)
     parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3, pool=pool)
-    wp.launch(_k.soft_cells_kernel(qb), dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
+    wp.launch(_k.soft_cells_kernel(groups.per_thread), dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
               outputs=parts, device=device, record_tape=False)
     wp.launch(_k.reduce_sums, dim=V, inputs=[groups.order, *parts], outputs=outputs, device=device,
               record_tape=False)
@@ -423,10 +416,7 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     b = _host_bounds(mesh, x, radius_stats, lengths=True) or _pairs.bounds(x, radius, f.length)
     # an edge crosses the ball only if its midpoint is within radius + L / 2
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
-    # the work of the first (short-edge) tier, which the query grouping serves, decides the queries per thread
-    tiered = concrete != "dense" and b.lmax > _pairs.TIER_BASE * b.lmean
-    qb = _queries_per_thread(device, b, concrete, b.rmean + 0.5 * (_pairs.TIER_BASE * b.lmean if tiered else b.lmax), E)
-    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, per_thread=qb,
+    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, max_per_thread=_k.QB,
                               cache=mesh._cache if points is x else None, pool=pool,
                               tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
     groups = plans[0][1]
