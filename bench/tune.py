@@ -10,6 +10,9 @@ The knobs (module attributes, set for the run and restored after):
 * ``splits``: how many ways a box's rows are shared (``None``: :func:`vnc_warp._pairs.launch_shape`'s choice);
 * ``cell``: grid cell size as a fraction of the typical radius (``vnc_warp._pairs.CELL_FRACTION``);
 * ``spread``: the per-thread box threshold (``vnc_warp._pairs.SPREAD``);
+* ``fine``: VNC-hard's Morton bits ordering the edges within a cell (``vnc_warp._pairs.FINE_BITS``);
+* ``bcell``: VNC-hard's cell size in a busy traversal (``vnc_warp._pairs.BUSY_BALL_CELL``);
+* ``tier``: VNC-hard's first edge-length tier in mean edge lengths (``vnc_warp._pairs.TIER_BASE``);
 * ``kernel``: VNC-hard's kernel variant (``BALL_KERNELS`` below, set as ``vnc_warp.kernels.vnc.BALL_VARIANT``).
 
 Every setting gives the same sums (the tests check all of them against the BVH); only the time differs. The
@@ -35,11 +38,17 @@ from .breakdown import _tau, load
 from .vnc import measure
 
 
-# kernel variants of VNC-hard: the midpoint prefilter off, on, or on for grid traversals only (the default)
+# kernel variants of VNC-hard (``vnc_warp.kernels.vnc.ball_cells_kernel``): the edge records ("unit": midpoint and unit
+# direction, "half": midpoint and half-vector), runs of records tested as a whole first ("chunks"), the midpoint
+# prefilter; None: chosen per traversal (``ball_variant``), as in "auto", the default
 BALL_KERNELS = {
-    "plain": {"prefilter": False},
-    "prefilter": {"prefilter": True},
-    "auto": {"prefilter": None},
+    "auto": {"prefilter": None, "form": None, "chunks": None},
+    "unit": {"prefilter": None, "form": "unit", "chunks": False},
+    "half": {"prefilter": None, "form": "half", "chunks": False},
+    "unit_chunks": {"prefilter": None, "form": "unit", "chunks": True},
+    "half_chunks": {"prefilter": None, "form": "half", "chunks": True},
+    "plain": {"prefilter": False, "form": None, "chunks": None},
+    "prefilter": {"prefilter": True, "form": None, "chunks": None},
 }
 
 
@@ -50,7 +59,8 @@ def _variant_name(table: dict, variant: dict) -> str:
 def apply(setting: dict) -> dict:
     """Set the knobs of ``setting``; returns the previous values (``apply(old)`` restores them)."""
     old = {"qb": _k.QB, "splits": _pairs.SPLITS, "cell": _pairs.CELL_FRACTION, "spread": _pairs.SPREAD,
-           "busy": _pairs.BUSY_SOURCES, "ball_kernel": _variant_name(BALL_KERNELS, _k.BALL_VARIANT)}
+           "busy": _pairs.BUSY_SOURCES, "tier": _pairs.TIER_BASE, "fine": _pairs.FINE_BITS,
+           "bcell": _pairs.BUSY_BALL_CELL, "ball_kernel": _variant_name(BALL_KERNELS, _k.BALL_VARIANT)}
     if "ball_kernel" in setting:
         _k.BALL_VARIANT = dict(BALL_KERNELS[setting["ball_kernel"]])
     _k.QB = int(setting.get("qb", old["qb"]))
@@ -58,6 +68,9 @@ def apply(setting: dict) -> dict:
     _pairs.CELL_FRACTION = float(setting.get("cell", old["cell"]))
     _pairs.SPREAD = float(setting.get("spread", old["spread"]))
     _pairs.BUSY_SOURCES = float(setting.get("busy", old["busy"]))
+    _pairs.TIER_BASE = float(setting.get("tier", old["tier"]))
+    _pairs.FINE_BITS = int(setting.get("fine", old["fine"]))
+    _pairs.BUSY_BALL_CELL = float(setting.get("bcell", old["bcell"]))
     _pairs.Pool.clear()
     return old
 
@@ -79,6 +92,12 @@ def main(argv=None) -> int:
     ap.add_argument("--cell", nargs="+", type=float, default=[0.5, 1.0])
     ap.add_argument("--spread", nargs="+", type=float, default=[8.0, 2.0])
     ap.add_argument("--busy", nargs="+", type=float, default=[2000.0])
+    ap.add_argument("--tier", nargs="+", type=float, default=[_pairs.TIER_BASE],
+                    help="VNC-hard's first edge-length tier, in mean edge lengths (vnc_warp._pairs.TIER_BASE)")
+    ap.add_argument("--fine", nargs="+", type=int, default=[_pairs.FINE_BITS],
+                    help="VNC-hard's Morton bits within a cell (vnc_warp._pairs.FINE_BITS)")
+    ap.add_argument("--busy-cell", nargs="+", type=float, default=[_pairs.BUSY_BALL_CELL],
+                    help="VNC-hard's cell size in a busy traversal, as a fraction of the reach (_pairs.BUSY_BALL_CELL)")
     ap.add_argument("--ball-kernels", nargs="+", default=["auto"], choices=list(BALL_KERNELS))
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", default=None)
@@ -87,10 +106,14 @@ def main(argv=None) -> int:
     mesh = load(args.mesh, args.subdivide)
     base = {"qb": args.qb, "splits": [None if s == "auto" else int(s) for s in args.splits], "cell": args.cell,
             "spread": args.spread, "busy": args.busy}
-    grids = {"soft": {**base, "kernel": ["default"]}, "hard": {**base, "kernel": args.ball_kernels}}
+    grids = {"soft": {**base, "tier": [_pairs.TIER_BASE], "fine": [_pairs.FINE_BITS],
+                     "bcell": [_pairs.BUSY_BALL_CELL], "kernel": ["default"]},
+             "hard": {**base, "tier": args.tier, "fine": args.fine, "bcell": args.busy_cell,
+                     "kernel": args.ball_kernels}}
     rows = []
     print(f"{mesh.name}: V={mesh.num_vertices} on {device}")
-    print(f"{'op':5} {'tau':>7} {'qb':>3} {'splits':>6} {'cell':>5} {'spread':>6} {'busy':>6} {'kernel':>10} {'ms':>8}")
+    print(f"{'op':5} {'tau':>7} {'qb':>3} {'splits':>6} {'cell':>5} {'spread':>6} {'busy':>6} {'tier':>4} {'fine':>4} {'bcell':>5} "
+          f"{'kernel':>11} {'ms':>8}")
     for op in args.ops:
         fn_op = vw.vnc_soft if op == "soft" else vw.vnc_hard
         for spec in args.taus:
@@ -106,10 +129,11 @@ def main(argv=None) -> int:
                     _replay.forget(mesh)
                 rows.append({"op": op, "tau": spec, **st, "ms": t})
                 print(f"{op:5} {spec:>7} {st['qb']:>3} {str(st['splits']):>6} {st['cell']:>5} {st['spread']:>6} "
-                      f"{st['busy']:>6g} {st['kernel']:>10} {t:8.3f}", flush=True)
+                      f"{st['busy']:>6g} {st['tier']:>4g} {st['fine']:>4} {st['bcell']:>5} {st['kernel']:>11} {t:8.3f}", flush=True)
     print("\nbest per scale (default setting's time in brackets):")
     default = {"qb": _k.QB, "splits": _pairs.SPLITS, "cell": _pairs.CELL_FRACTION, "spread": _pairs.SPREAD,
-               "busy": _pairs.BUSY_SOURCES}
+               "busy": _pairs.BUSY_SOURCES, "tier": _pairs.TIER_BASE, "fine": _pairs.FINE_BITS,
+               "bcell": _pairs.BUSY_BALL_CELL}
     for op in args.ops:
         default["kernel"] = "default" if op == "soft" else _variant_name(BALL_KERNELS, _k.BALL_VARIANT)
         for spec in args.taus:
@@ -117,7 +141,9 @@ def main(argv=None) -> int:
             best = min(rs, key=lambda r: r["ms"])
             d = [r["ms"] for r in rs if all(r[k] == v for k, v in default.items())]
             print(f"{op:5} {spec:>7}: {best['ms']:.3f} ms at qb={best['qb']} splits={best['splits']} "
-                  f"cell={best['cell']} spread={best['spread']} busy={best['busy']:g} kernel={best['kernel']}  "
+                  f"cell={best['cell']} spread={best['spread']} busy={best['busy']:g} tier={best['tier']:g} "
+                  f"fine={best['fine']} bcell={best['bcell']} "
+                  f"kernel={best['kernel']}  "
                   f"[{d[0] if d else float('nan'):.3f}]")
     # per op, the setting with the smallest worst-case ratio to the best over every scale
     ranked = []

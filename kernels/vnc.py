@@ -22,6 +22,10 @@ dimension) for occupancy (a box of many rows by whole rows in turn, a box of few
 :func:`row_walk`, :func:`row_share`); each thread
 writes its partial sums to row ``s`` of a ``(ns, Q)`` array that a reduction kernel adds up in a fixed order, so
 results are deterministic. The forward VNC-soft kernel holds ``QB`` queries per thread.
+
+The ball kernels (Eqs. 1-2) read edges sorted once for all their edge-length tiers (:func:`tier_cell_keys`), each
+cell's along a Morton curve, so that a run of ``CHUNK`` consecutive records is a small patch whose box
+(:func:`chunk_boxes`) can be tested against a thread's balls as a whole (``ball_cells_kernel(chunks=True)``).
 """
 
 import warp as wp
@@ -597,6 +601,21 @@ def spread_bits(v: int):
 
 
 @wp.func
+def fine_code(q: wp.vec3, c: wp.vec3i, bits: int):
+    """Morton code of ``bits / 3`` bits per axis of the position ``q`` (in cell units) inside its cell ``c``: sorts
+    a cell's sources along a curve, so that a run of consecutive records is a small patch."""
+    b = bits // 3
+    if b == 0:
+        return 0
+    top = float((1 << b) - 1)
+    s = float(1 << b)
+    x = int(wp.clamp((q[0] - float(c[0])) * s, 0.0, top))
+    y = int(wp.clamp((q[1] - float(c[1])) * s, 0.0, top))
+    z = int(wp.clamp((q[2] - float(c[2])) * s, 0.0, top))
+    return spread_bits(x) | (spread_bits(y) << 1) | (spread_bits(z) << 2)
+
+
+@wp.func
 def chord(cc: float, ch: float, hh: float, inv_hh: float, half_l: float, r2: float):
     """Length inside the ball ``|p - q| <= r`` of the segment ``m + u h``, ``u`` in [-1, 1] (the ``l_j`` of Eq. (1)).
 
@@ -656,31 +675,66 @@ def cell_keys(
     origin: wp.vec3,
     inv_h: float,
     dims: wp.vec3i,
-    length: wp.array(dtype=float),
-    lmin: float,
-    lmax: float,
+    fine_bits: int,
     keys: wp.array(dtype=int),
     values: wp.array(dtype=int),
     counts: wp.array(dtype=int),
 ):
-    """Sort keys of the sources: their row-major cell index (values: their own index); ``counts[c]`` (zeroed
-    first) += number of sources with key ``c`` (an exclusive scan of it gives ``first``; the sources left out are
-    not counted).
-
-    When ``length`` is given, a source with ``length`` outside ``(lmin, lmax]`` gets the key ``num_cells``: it
-    sorts after every cell and no traversal of this grid sees it.
-    """
+    """Sort keys of the sources: their row-major cell index (values: their own index), shifted left by
+    ``fine_bits`` that order a cell's sources along a Morton curve (:func:`fine_code`); ``counts[c]`` (zeroed
+    first) += number of sources in cell ``c`` (an exclusive scan of it gives ``first``)."""
     i = wp.tid()
-    key = cell_index(cell_coord(points[i], origin, inv_h, dims), dims)
-    keep = True
-    if length.shape[0] > 0:
-        if length[i] <= lmin or length[i] > lmax:
-            key = dims[0] * dims[1] * dims[2]
-            keep = False
-    keys[i] = key
+    q = (points[i] - origin) * inv_h
+    c = cell_coord(points[i], origin, inv_h, dims)
+    cell = cell_index(c, dims)
+    keys[i] = (cell << fine_bits) | fine_code(q, c, fine_bits)
     values[i] = i
-    if keep:  # no count for the sources left out: every one of them would add to the same counter
-        wp.atomic_add(counts, key, 1)
+    wp.atomic_add(counts, cell, 1)
+
+
+@wp.kernel(enable_backward=False)
+def tier_cell_keys(
+    points: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    inv_h: float,
+    dims: wp.vec3i,
+    length: wp.array(dtype=float),
+    tier_hi: wp.vec4,
+    tier_slot: wp.vec4i,
+    grid_tiers: int,
+    fine_bits: int,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+    counts: wp.array(dtype=int),
+):
+    """Sort keys of edges in length tiers, for one sort that serves every tier: tier ``t`` holds the edges with
+    ``tier_hi[t - 1] < length <= tier_hi[t]`` (``tier_hi`` ascending, the last one infinite). A tier traversed
+    through the grid (``tier_slot[t] = g < grid_tiers``) buckets an edge ``g * num_cells + cell``; every other tier
+    in bucket ``grid_tiers * num_cells``, tested densely. Keys: the bucket shifted left by ``fine_bits`` that order
+    a bucket along a Morton curve (within the cell, or the whole grid for the dense bucket); ``counts[bucket]``
+    (zeroed first) += 1."""
+    i = wp.tid()
+    L = length[i]
+    t = int(0)
+    for k in range(3):
+        if L > tier_hi[k]:
+            t = k + 1
+    slot = tier_slot[t]
+    nc = dims[0] * dims[1] * dims[2]
+    q = (points[i] - origin) * inv_h
+    c = cell_coord(points[i], origin, inv_h, dims)
+    bucket = grid_tiers * nc
+    fine = int(0)
+    if slot < grid_tiers:
+        bucket = slot * nc + cell_index(c, dims)
+        fine = fine_code(q, c, fine_bits)
+    else:
+        # the whole grid as one cell
+        fine = fine_code(wp.cw_div(q, wp.vec3(float(dims[0]), float(dims[1]), float(dims[2]))), wp.vec3i(0),
+                         fine_bits)
+    keys[i] = (bucket << fine_bits) | fine
+    values[i] = i
+    wp.atomic_add(counts, bucket, 1)
 
 
 @wp.kernel(enable_backward=False)
@@ -715,70 +769,73 @@ def iota(values: wp.array(dtype=int)):
     values[i] = i
 
 
+# Offset of the cell coordinates gathered by atomic maxima in thread_extents: a group's smallest cell c is kept as
+# BOX_OFFSET - c, so that every accumulator starts from zero
+BOX_OFFSET = wp.constant(1 << 30)
+
+
 @wp.kernel(enable_backward=False)
 def thread_extents(
     points: wp.array(dtype=wp.vec3),
     order: wp.array(dtype=int),
     radius: wp.array(dtype=float),
-    pad: float,
+    margin: float,
     count: int,
     per_thread: int,
+    threads_per_group: int,
     origin: wp.vec3,
     inv_h: float,
     dims: wp.vec3i,
-    ext_lo: wp.array(dtype=wp.vec3),
-    ext_hi: wp.array(dtype=wp.vec3),
-    own: wp.array(dtype=float),
+    pads: wp.vec4,
+    low: wp.array2d(dtype=wp.vec3i),
+    high: wp.array2d(dtype=wp.vec3i),
+    most: wp.array2d(dtype=wp.vec3i),
 ):
-    """Per thread of a traversal: the extent of the balls ``|x - p_k| <= radius[k] + pad`` of its ``per_thread``
-    consecutive sorted queries, and how many cells that extent covers (one thread per entry, so the reads of all
-    queries are in flight together; :func:`group_boxes` combines them per group)."""
+    """Per thread of a traversal: the cells of the balls ``|x - p_k| <= radius[k] + margin + pads[t]`` of its
+    ``per_thread`` consecutive sorted queries, for every traversal ``t`` (a row of ``low``: the edge-length tiers of
+    the ball kernels), gathered into its group's accumulators (zeroed first) by atomic maxima: ``low`` holds
+    ``BOX_OFFSET`` minus the smallest cell, ``high`` one past the largest, ``most.x`` the cells of the largest box of
+    one thread. One thread per entry: the reads of all queries are in flight together; :func:`group_boxes` ends."""
     u = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for t in range(u * per_thread, wp.min(u * per_thread + per_thread, count)):
         k = order[t]
-        e = wp.vec3(radius[k] + pad)
+        e = wp.vec3(radius[k] + margin)
         lo = wp.min(lo, points[k] - e)
         hi = wp.max(hi, points[k] + e)
-    ext_lo[u] = lo
-    ext_hi[u] = hi
-    own[u] = box_cells(cell_coord(lo, origin, inv_h, dims), cell_coord(hi, origin, inv_h, dims))
+    g = u // threads_per_group
+    for t in range(low.shape[0]):
+        e = wp.vec3(pads[t])
+        clo = cell_coord(lo - e, origin, inv_h, dims)
+        chi = cell_coord(hi + e, origin, inv_h, dims)
+        wp.atomic_max(low, t, g, wp.vec3i(BOX_OFFSET) - clo)
+        wp.atomic_max(high, t, g, chi + wp.vec3i(1))
+        wp.atomic_max(most, t, g, wp.vec3i(int(box_cells(clo, chi)), 0, 0))
 
 
 @wp.kernel(enable_backward=False)
 def group_boxes(
-    ext_lo: wp.array(dtype=wp.vec3),
-    ext_hi: wp.array(dtype=wp.vec3),
-    own: wp.array(dtype=float),
-    threads_per_group: int,
-    origin: wp.vec3,
-    inv_h: float,
-    dims: wp.vec3i,
+    low: wp.array2d(dtype=wp.vec3i),
+    high: wp.array2d(dtype=wp.vec3i),
+    most: wp.array2d(dtype=wp.vec3i),
     spread: float,
-    box_lo: wp.array(dtype=wp.vec3i),
-    box_hi: wp.array(dtype=wp.vec3i),
+    box_lo: wp.array2d(dtype=wp.vec3i),
+    box_hi: wp.array2d(dtype=wp.vec3i),
 ):
-    """Per group of ``threads_per_group`` consecutive threads (:func:`thread_extents`): the cells reached by any of
-    their balls.
+    """Per traversal ``t`` and group ``g``, the cells reached by any ball of its threads (gathered by
+    :func:`thread_extents`).
 
     The threads of a group walk that shared box. When it holds more than ``spread`` times the cells of the largest
     box of one thread (the balls are far apart, e.g. across a jump of the Morton curve, or small next to the group's
     extent) the group is marked ``box_lo.x = -1``: each thread then walks its own box (:func:`thread_box`)."""
-    g = wp.tid()
-    lo = wp.vec3(1.0e30)
-    hi = wp.vec3(-1.0e30)
-    most = float(0.0)
-    for u in range(g * threads_per_group, wp.min(g * threads_per_group + threads_per_group, own.shape[0])):
-        lo = wp.min(lo, ext_lo[u])
-        hi = wp.max(hi, ext_hi[u])
-        most = wp.max(most, own[u])
-    clo = cell_coord(lo, origin, inv_h, dims)
-    chi = cell_coord(hi, origin, inv_h, dims)
-    if box_cells(clo, chi) > spread * most:
+    t, g = wp.tid()
+    clo = wp.vec3i(BOX_OFFSET) - low[t, g]
+    chi = high[t, g] - wp.vec3i(1)
+    if box_cells(clo, chi) > spread * float(most[t, g][0]):
         clo = wp.vec3i(-1, clo[1], clo[2])
-    box_lo[g] = clo
-    box_hi[g] = chi
+    box_lo[t, g] = clo
+    box_hi[t, g] = chi
 
 
 @wp.kernel(enable_backward=False)
@@ -808,12 +865,15 @@ def pack_ball_sources(
     edges: wp.array(dtype=wp.vec4i),
     angle: wp.array(dtype=float),
     enormal: wp.array(dtype=wp.vec3),
+    unit: int,
     seg_m: wp.array(dtype=wp.vec4),
     seg_h: wp.array(dtype=wp.vec4),
     val: wp.array(dtype=wp.vec4),
 ):
-    """Edges in sorted order for the ball kernels, as midpoint and half-vector ``h = (x_b - x_a) / 2``:
-    ``seg_m = (m_j, 1 / |h|^2)``, ``seg_h = (h, |h|)``, ``val = (alpha_j delta_j, n_j)``."""
+    """Edges in sorted order for the ball kernels, ``val = (alpha_j delta_j, n_j)`` and either (``unit``) midpoint
+    and unit direction ``d`` (zero for a degenerate edge), ``seg_m = (m_j, L_j / 2)``, ``seg_h = (d_j, L_j)``, or
+    midpoint and half-vector ``h = (x_b - x_a) / 2``, ``seg_m = (m_j, 1 / |h|^2)`` (0 for a degenerate edge),
+    ``seg_h = (h, |h|)``."""
     i = wp.tid()
     j = order[i]
     ev = edges[j]
@@ -822,11 +882,19 @@ def pack_ball_sources(
     m = 0.5 * (xa + xb)
     h = 0.5 * (xb - xa)
     hh = wp.dot(h, h)
-    inv = float(0.0)
-    if hh > 0.0:
-        inv = 1.0 / hh
-    seg_m[i] = wp.vec4(m[0], m[1], m[2], inv)
-    seg_h[i] = wp.vec4(h[0], h[1], h[2], wp.sqrt(hh))
+    half = wp.sqrt(hh)
+    if unit != 0:
+        d = wp.vec3(0.0)
+        if half > 0.0:
+            d = h / half
+        seg_m[i] = wp.vec4(m[0], m[1], m[2], half)
+        seg_h[i] = wp.vec4(d[0], d[1], d[2], 2.0 * half)
+    else:
+        inv = float(0.0)
+        if hh > 0.0:
+            inv = 1.0 / hh
+        seg_m[i] = wp.vec4(m[0], m[1], m[2], inv)
+        seg_h[i] = wp.vec4(h[0], h[1], h[2], half)
     u = enormal[j]
     val[i] = wp.vec4(angle[j], u[0], u[1], u[2])
 
@@ -945,18 +1013,32 @@ def soft_cells_kernel(qb: int):
     return soft_cells
 
 
+# Sorted edge records per run of the chunked ball kernels (ball_cells_kernel(chunks=True)), and the fewest records a
+# run must hold to be tested as a whole (a shorter run goes straight to the chords)
+CHUNK = wp.constant(32)
+MIN_RUN = wp.constant(8)
+
+
 _ball_cells_kernels = {}
 
 
-def ball_cells_kernel(qb: int, prefilter: bool = False):
+def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chunks: bool = False):
     """The edge/ball traversal kernel of Eqs. (1)-(2) with ``qb`` queries per thread (compiled once per variant).
 
+    ``form``: the edge records the kernel reads (:func:`pack_ball_sources`), "unit" (midpoint, unit direction, the
+    roots in length units) or "half" (midpoint, half-vector, the roots in ``[-1, 1]``).
     The chord is evaluated behind the one test that the edge's line meets the ball (on an H200 25-35 % faster from 4
     mean edge lengths up than :func:`chord` and a test of its length for every candidate, and no slower below;
     reading two edges per iteration was no faster: ``docs/results/tune_h200_kernels.json``). ``prefilter`` first
     rejects an edge whose midpoint is beyond the radius plus its half length (``tune_h200_prefilter.json``).
+    ``chunks``: the edges are read in runs of at most :data:`CHUNK` sorted records, each tested as a whole against
+    the thread's balls first (:func:`chunk_boxes`): a run beyond every ball is skipped, one inside every ball adds
+    its edges' whole lengths with no chord (an edge with both ends in a ball lies in it).
     """
-    key = (qb, prefilter)
+    if form not in ("unit", "half"):
+        raise ValueError(f"form must be 'unit' or 'half', got {form!r}")
+    unit = form == "unit"
+    key = (qb, bool(prefilter), form, bool(chunks))
     if key in _ball_cells_kernels:
         return _ball_cells_kernels[key]
     vq = wp.types.vector(length=qb, dtype=wp.float32)
@@ -979,6 +1061,8 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
         seg_m: wp.array(dtype=wp.vec4),
         seg_h: wp.array(dtype=wp.vec4),
         val: wp.array(dtype=wp.vec4),
+        chunk_lo: wp.array(dtype=wp.vec3),
+        chunk_hi: wp.array(dtype=wp.vec3),
         splits: int,
         accumulate: int,
         part_num: wp.array2d(dtype=float),
@@ -1034,35 +1118,100 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
         steps = row_walk(nrows, s, splits)
         for row in range(steps[0], nrows, steps[1]):
             span = row_share(row_span(row, lo, hi, dims, first), s, splits, steps[1])
-            for i in range(span[0], span[1]):
-                sm = load4(seg_m, i)
-                sh = load4(seg_h, i)
-                ev = load4(val, i)
-                hh = sh[3] * sh[3]
-                for q in range(qb):
-                    cx = sm[0] - px[q]
-                    cy = sm[1] - py[q]
-                    cz = sm[2] - pz[q]
-                    cc = cx * cx + cy * cy + cz * cz
-                    near = True
-                    if wp.static(prefilter):
-                        t = rq[q] + sh[3]
-                        near = cc <= t * t
-                    if near:
-                        ch = cx * sh[0] + cy * sh[1] + cz * sh[2]
-                        disc = ch * ch - hh * (cc - r2[q])
-                        if disc > 0.0:
-                            # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both ends inside
-                            # gets u1 = -1, u2 = 1 (its whole length), a degenerate one (1 / hh = 0) nothing
-                            sq = wp.sqrt(disc)
-                            u1 = wp.max((-ch - sq) * sm[3], -1.0)
-                            u2 = wp.min((-ch + sq) * sm[3], 1.0)
-                            w = wp.max(u2 - u1, 0.0) * sh[3] * exp2(cc * gl[q])
+            i = span[0]
+            while i < span[1]:
+                j = span[1]
+                mode = int(1)  # 0: beyond every ball, 1: the chords, 2: inside every ball
+                if wp.static(chunks):
+                    c = i // CHUNK
+                    j = wp.min(j, (c + 1) * CHUNK)
+                    if j - i >= MIN_RUN:
+                        bl = chunk_lo[c]
+                        bh = chunk_hi[c]
+                        inside = True
+                        near = False
+                        for q in range(qb):
+                            if r2[q] >= 0.0:
+                                # farthest and nearest points of the run's box from the query
+                                fx = wp.max(px[q] - bl[0], bh[0] - px[q])
+                                fy = wp.max(py[q] - bl[1], bh[1] - py[q])
+                                fz = wp.max(pz[q] - bl[2], bh[2] - pz[q])
+                                nx = wp.max(wp.max(bl[0] - px[q], px[q] - bh[0]), 0.0)
+                                ny = wp.max(wp.max(bl[1] - py[q], py[q] - bh[1]), 0.0)
+                                nz = wp.max(wp.max(bl[2] - pz[q], pz[q] - bh[2]), 0.0)
+                                if fx * fx + fy * fy + fz * fz > r2[q]:
+                                    inside = False
+                                if nx * nx + ny * ny + nz * nz <= r2[q]:
+                                    near = True
+                        mode = 0
+                        if near:
+                            mode = 1
+                            if inside:
+                                mode = 2
+                if mode == 2:
+                    for ii in range(i, j):
+                        sm = load4(seg_m, ii)
+                        ev = load4(val, ii)
+                        L = float(0.0)
+                        if wp.static(unit):
+                            L = 2.0 * sm[3]
+                        else:
+                            L = 2.0 * load4(seg_h, ii)[3]
+                        for q in range(qb):
+                            cx = sm[0] - px[q]
+                            cy = sm[1] - py[q]
+                            cz = sm[2] - pz[q]
+                            w = L * exp2((cx * cx + cy * cy + cz * cz) * gl[q])
                             an[q] += w * ev[0]
                             ad[q] += w
                             ax[q] += w * ev[1]
                             ay[q] += w * ev[2]
                             az[q] += w * ev[3]
+                elif mode == 1:
+                    for ii in range(i, j):
+                        sm = load4(seg_m, ii)
+                        sh = load4(seg_h, ii)
+                        ev = load4(val, ii)
+                        hh = sh[3] * sh[3]
+                        half = sh[3]
+                        if wp.static(unit):
+                            half = sm[3]
+                        for q in range(qb):
+                            cx = sm[0] - px[q]
+                            cy = sm[1] - py[q]
+                            cz = sm[2] - pz[q]
+                            cc = cx * cx + cy * cy + cz * cz
+                            near_q = True
+                            if wp.static(prefilter):
+                                t = rq[q] + half
+                                near_q = cc <= t * t
+                            if near_q:
+                                ch = cx * sh[0] + cy * sh[1] + cz * sh[2]
+                                l_in = float(0.0)
+                                disc = float(0.0)
+                                if wp.static(unit):
+                                    # |m - p + u d|^2 = r^2 at u = -ch +- sqrt(disc), u in [-L/2, L/2] on the edge
+                                    disc = ch * ch - (cc - r2[q])
+                                else:
+                                    disc = ch * ch - hh * (cc - r2[q])
+                                if disc > 0.0:
+                                    sq = wp.sqrt(disc)
+                                    if wp.static(unit):
+                                        # the chord min(sq - ch, L/2) - max(-sq - ch, -L/2), without negations
+                                        l_in = wp.max(wp.min(sq - ch, half) + wp.min(sq + ch, half), 0.0)
+                                    else:
+                                        # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both
+                                        # ends inside gets its whole length, a degenerate one (1 / hh = 0) nothing
+                                        u1 = wp.max((-ch - sq) * sm[3], -1.0)
+                                        u2 = wp.min((-ch + sq) * sm[3], 1.0)
+                                        l_in = wp.max(u2 - u1, 0.0) * half
+                                    w = l_in * exp2(cc * gl[q])
+                                    an[q] += w * ev[0]
+                                    ad[q] += w
+                                    ax[q] += w * ev[1]
+                                    ay[q] += w * ev[2]
+                                    az[q] += w * ev[3]
+                i = j
         for q in range(qb):
             if t0 + q < count:
                 if accumulate != 0:
@@ -1078,9 +1227,61 @@ def ball_cells_kernel(qb: int, prefilter: bool = False):
     return ball_cells
 
 
-# the variant of the ball kernel the operators launch (bench/tune.py times the others); prefilter None: on for grid
-# traversals (3-5 % faster on an H200), off for the dense one (13 % slower there: every candidate is near)
-BALL_VARIANT = {"prefilter": None}
+@wp.kernel(enable_backward=False, module="unique", module_options={"max_unroll": 32})
+def chunk_boxes(
+    seg_m: wp.array(dtype=wp.vec4),
+    seg_h: wp.array(dtype=wp.vec4),
+    unit: int,
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+):
+    """Bounding box of the edges of sorted records ``CHUNK c .. CHUNK (c + 1) - 1`` (both ends of each), from the
+    records of :func:`pack_ball_sources` (``unit``: of the "unit" form). The loop has a fixed trip count, so
+    it unrolls and all of a thread's reads are in flight together (there are few threads)."""
+    c = wp.tid()
+    n = seg_m.shape[0]
+    blo = wp.vec3(1.0e30)
+    bhi = wp.vec3(-1.0e30)
+    for k in range(CHUNK):
+        i = c * CHUNK + k
+        if i < n:
+            sm = seg_m[i]
+            sh = seg_h[i]
+            m = wp.vec3(sm[0], sm[1], sm[2])
+            h = wp.vec3(wp.abs(sh[0]), wp.abs(sh[1]), wp.abs(sh[2]))
+            if unit != 0:
+                h = h * sm[3]
+            blo = wp.min(blo, m - h)
+            bhi = wp.max(bhi, m + h)
+    lo[c] = blo
+    hi[c] = bhi
+
+
+# the variant of the ball kernel the operators launch (bench/tune.py times the others); None: chosen per traversal
+# by ball_variant
+BALL_VARIANT = {"prefilter": None, "form": None, "chunks": None}
+# runs of edge records are tested as a whole from this ball radius on, in mean edge lengths (a run of CHUNK records
+# is a patch a few edges wide: a smaller ball seldom holds one, and testing runs cost up to 5 % at 4 edge lengths on an
+# H200)
+CHUNK_REACH = 6.0
+
+
+def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = False) -> dict:
+    """The :func:`ball_cells_kernel` options of one launch of a traversal (those of :data:`BALL_VARIANT` left None),
+    measured on an H200 (``bench/tune.py``; ``docs/results/tune_h200_chunks.json``): the midpoint prefilter for grid
+    traversals (3-5 % faster; 13 % slower in a dense one, where every candidate is near); "half" records for one
+    query per thread (2-8 % faster), "unit" for several (4-6 %); chunked runs for balls of at least
+    :data:`CHUNK_REACH` mean edge lengths (``reach``, 6-14 % faster at 8-16) and for every launch over one cell
+    (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long edges' one of a grid traversal,
+    most of whose runs are far from a small ball)."""
+    v = dict(BALL_VARIANT)
+    if v["prefilter"] is None:
+        v["prefilter"] = strategy == "grid"
+    if v["form"] is None:
+        v["form"] = "unit" if per_thread > 1 else "half"
+    if v["chunks"] is None:
+        v["chunks"] = strategy == "dense" or one_cell or reach >= CHUNK_REACH
+    return v
 
 
 @wp.kernel(enable_backward=False)

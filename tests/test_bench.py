@@ -109,16 +109,18 @@ def test_tune_times_every_setting_and_restores_the_knobs(tmp_path):
     from vnc_warp import _pairs
     from vnc_warp.kernels import vnc as _k
 
-    before = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, dict(_k.BALL_VARIANT))
+    before = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,
+              _pairs.FINE_BITS, _pairs.BUSY_BALL_CELL, dict(_k.BALL_VARIANT))
     out = tmp_path / "tune.json"
     assert tune.main(["--device", "cpu", "--mesh", "spot_lowres.obj", "--taus", "2", "--qb", "4", "--splits", "auto",
-                      "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf", "--ball-kernels", "plain",
-                      "prefilter", "--repeats", "1", "--out", str(out)]) == 0
-    after = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, dict(_k.BALL_VARIANT))
+                      "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf", "--tier", "1.5",
+                      "--ball-kernels", "unit", "half_chunks", "--repeats", "1", "--out", str(out)]) == 0
+    after = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,
+              _pairs.FINE_BITS, _pairs.BUSY_BALL_CELL, dict(_k.BALL_VARIANT))
     assert after == before
     doc = json.loads(out.read_text())
     soft = [r for r in doc["rows"] if r["op"] == "soft"]
     hard = [r for r in doc["rows"] if r["op"] == "hard"]
     assert len(soft) == 4 and len(hard) == 8  # 2 cells x 2 busy (x 2 ball kernels)
     assert all(math.isfinite(r["ms"]) and r["ms"] > 0 for r in doc["rows"])
-    assert {r["kernel"] for r in hard} == {"plain", "prefilter"}
+    assert {r["kernel"] for r in hard} == {"unit", "half_chunks"}

@@ -12,6 +12,8 @@ from reference import dense_ball_sums, dense_soft
 
 import vnc_warp as vw
 from vnc_warp import _pairs
+from vnc_warp.kernels import vnc as _k
+from vnc_warp.operators import _tier_sizes
 
 STRATEGIES = ["grid", "dense", "bvh"]
 
@@ -104,6 +106,29 @@ def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
         np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6)
 
 
+@pytest.mark.parametrize("form", ["unit", "half"])
+@pytest.mark.parametrize("chunks", [False, True], ids=["chords", "chunks"])
+@pytest.mark.parametrize("prefilter", [False, True], ids=["all", "prefilter"])
+def test_every_ball_kernel_variant(form, chunks, prefilter, cuda_launch_shape, monkeypatch, device):
+    """Each variant of the ball kernel (``bench/tune.py`` times them all; ``ball_variant`` picks one per traversal):
+    edge records, chunked runs, prefilter, 4 queries per thread over 3 splits; Eq. (2) with and without the Gaussian
+    equals the float64 dense reference from a ball of one edge length (no run inside it) to the whole mesh (every run
+    inside), through the grid (edge-length tiers: scan-like long edges) and densely."""
+    monkeypatch.setattr(_k, "BALL_VARIANT", {"prefilter": prefilter, "form": form, "chunks": chunks})
+    mesh = _bumpy_sphere(subdiv=3, seed=3)
+    v = mesh.vertices.copy()
+    v[::7] *= 1.25  # spikes: long edges, several length tiers
+    mesh = vw.load_mesh(trimesh.Trimesh(v, mesh.faces, process=False))
+    idx = np.arange(0, mesh.num_vertices, 13)
+    for tau in (1.0 * mesh.mean_edge_length, 7.0 * mesh.mean_edge_length, 1.2 * mesh.bbox_diagonal):
+        for kappa in (None, 6.0):
+            num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices[idx], tau, kappa)
+            for strategy in ("grid", "dense"):
+                H = vw.vnc_hard(mesh, tau, kappa=kappa, device=device, strategy=strategy)[0].numpy()
+                np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6,
+                                           err_msg=f"{strategy}, tau={tau:.3g}, kappa={kappa}")
+
+
 @pytest.mark.parametrize("dense_tier_pairs", [0, 1 << 40], ids=["grid-tiers", "dense-tiers"])
 def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, monkeypatch, device):
     """A mesh whose edges span 0.1 to 3 units (a cylinder's sides and rings) is traversed by the ball kernels in
@@ -128,6 +153,36 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, 
             np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"{s}, r={r}")
             got = vw.integrated_mean_curvature(mesh, r, device=device, strategy=s).numpy()
             np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1 {s}, r={r}")
+
+
+@pytest.mark.parametrize("dense_tier_pairs", [0, 1 << 40], ids=["grid-tiers", "dense-tiers"])
+@pytest.mark.parametrize("busy", [True, False], ids=["busy", "light"])
+def test_later_tiers_take_fewer_splits(dense_tier_pairs, busy, monkeypatch, device):
+    """Splits that follow each traversal's expected work (as on a GPU): the long-edge tiers of the cylinder take fewer
+    than the first, add their partial sums to its first rows, and Eqs. (1)-(2) still equal the float64 reference.
+    Busy (several queries per thread) or light (one), every tier like the first."""
+    monkeypatch.setattr(_pairs, "DENSE_TIER_PAIRS", {"cuda": dense_tier_pairs, "cpu": dense_tier_pairs})
+    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0:
+                        (32 * per_thread, int(np.clip(work / 20.0, 1, 6))))
+    monkeypatch.setattr(_pairs, "queries_per_thread",
+                        lambda device, work, most: most if busy else 1)
+    mesh = vw.load_mesh(trimesh.creation.cylinder(radius=1.0, height=3.0, sections=48))
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    tau = wp.full(mesh.num_vertices, 0.4, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, tau, f.length)
+    plans = _pairs.ball_plans(x, tau, f.mid, f.length, b, "grid", tier_size=_tier_sizes(mesh),
+                              max_per_thread=_k.QB)
+    splits = [g.splits for _, g in plans]
+    assert len(plans) > 1 and max(splits[1:]) < splits[0], splits
+    assert {g.per_thread for _, g in plans} == {_k.QB if busy else 1}
+    assert any(tuple(c.dims) == (1, 1, 1) for c, _ in plans) == bool(dense_tier_pairs)
+    for r in (0.4, 1.5):
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
+        H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy="grid")[0].numpy()
+        np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={r}")
+        got = vw.integrated_mean_curvature(mesh, r, device=device, strategy="grid").numpy()
+        np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1, r={r}")
 
 
 def test_threads_with_far_apart_balls(cuda_launch_shape, device):

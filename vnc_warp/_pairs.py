@@ -21,13 +21,13 @@ more splits and several queries per thread (:func:`queries_per_thread`), so that
 them. Scratch buffers come from a :class:`Pool` and the queries' Morton order is kept with the mesh: both only save
 host time (as does :mod:`vnc_warp._replay`, which replays repeated calls from captured graphs). The ball kernels
 (Eqs. 1-2) reach an edge from up to half its length beyond the radius, so they traverse the edges in tiers
-of similar length (:func:`ball_plans`): a few long edges, common in scans, do not widen every query's box, and a tier
-of few of them is tested against every query instead.
+of similar length (:func:`ball_plans`, one sort for all of them): a few long edges, common in scans, do not widen
+every query's box, and the tiers of few of them are tested against every query instead, in one traversal.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
@@ -163,13 +163,13 @@ def _grid_dims(ext: np.ndarray, h: float) -> np.ndarray:
     return np.floor(ext / h).astype(np.int64) + 1
 
 
-def cell_size(b: Bounds, reach: float, sources: int, device: wp.Device) -> float:
-    """Cell size for balls of typical radius ``reach``: ``CELL_FRACTION`` (half) of the radius (a box of cells then
-    overshoots a ball, or a warp's group of balls, by half a radius at most per side), enlarged until the grid has
-    at most ``4 x sources`` cells, so memory stays O(sources)."""
+def cell_size(b: Bounds, reach: float, sources: int, device: wp.Device, fraction: float | None = None) -> float:
+    """Cell size for balls of typical radius ``reach``: ``fraction`` (default :data:`CELL_FRACTION`, half) of the
+    radius (a box of cells then overshoots a ball, or a warp's group of balls, by half a radius at most per side),
+    enlarged until the grid has at most ``4 x sources`` cells, so memory stays O(sources)."""
     ext = np.maximum(b.hi - b.lo, 0.0)
     scale = max(float(ext.max()), float(np.abs(np.concatenate([b.lo, b.hi])).max()), 1e-30)
-    h = max(CELL_FRACTION * reach, 1e-6 * scale)
+    h = max((CELL_FRACTION if fraction is None else fraction) * reach, 1e-6 * scale)
     cap = max(4 * sources, 4096)
     for _ in range(64):
         n = float(np.prod(_grid_dims(ext, h).astype(np.float64)))
@@ -177,6 +177,19 @@ def cell_size(b: Bounds, reach: float, sources: int, device: wp.Device) -> float
             break
         h *= 1.01 * (n / cap) ** (1.0 / 3.0)
     return h
+
+
+def grid_cell(b: Bounds, reach: float, sources: int, device: wp.Device, max_per_thread: int = 1,
+              busy_fraction: float | None = None) -> tuple[float, float]:
+    """``(cell size, expected candidates per query)`` of a grid traversal over ``sources`` (see :func:`cell_size`);
+    ``busy_fraction``: the cell size, as a fraction of ``reach``, of a busy traversal (one of several queries per
+    thread, :func:`queries_per_thread`)."""
+    h = cell_size(b, reach, sources, device)
+    work = dense_fraction(b, reach, h) * sources
+    if busy_fraction is not None and queries_per_thread(device, work, max_per_thread) > 1:
+        h = cell_size(b, reach, sources, device, busy_fraction)
+        work = max(work, dense_fraction(b, reach, h) * sources)
+    return h, work
 
 
 def dense_fraction(b: Bounds, reach: float, h: float) -> float:
@@ -208,36 +221,74 @@ class Cells:
     dims: wp.vec3i
 
 
-def build_cells(points: wp.array, b: Bounds, h: float | None, select: tuple | None = None,
-                pool: Pool | None = None) -> Cells:
-    """Sort ``points`` (the sources) into a grid of cells of size ``h`` over ``b`` (``h=None``: one cell).
+def _fine_bits(buckets: int, fine: bool) -> tuple[int, int]:
+    """``(bits of a bucket index, Morton bits within a bucket)`` for sort keys of at most 31 bits."""
+    bits = max(int(buckets - 1).bit_length(), 1)
+    return bits, (min(FINE_BITS, 31 - bits) // 3) * 3 if fine else 0
 
-    ``select = (length, lmin, lmax)`` keeps only the sources with ``lmin < length <= lmax`` in the cells (the
-    others sort past the last cell).
-    """
+
+# Morton bits that order a cell's sources for the ball kernels (3 per axis: 512 sub-cells), so that a run of sorted
+# records is a small patch: ball_cells_kernel(chunks=True) then finds more runs wholly inside or outside a ball.
+FINE_BITS = 9
+
+
+def build_cells(points: wp.array, b: Bounds, h: float | None, pool: Pool | None = None, fine: bool = False) -> Cells:
+    """Sort ``points`` (the sources) into a grid of cells of size ``h`` over ``b`` (``h=None``: one cell);
+    ``fine``: each cell's sources along a Morton curve (:data:`FINE_BITS`; with one cell, all of them)."""
     device = points.device
     n = points.shape[0]
     origin = wp.vec3(*b.lo)
-    if h is None and select is None:
-        order = _empty(pool, device, n, wp.int32)
-        wp.launch(_k.iota, dim=n, outputs=[order], device=device, record_tape=False)
+    if h is None:
+        if fine:
+            order = query_order(points, b, None, pool)
+        else:
+            order = _empty(pool, device, n, wp.int32)
+            wp.launch(_k.iota, dim=n, outputs=[order], device=device, record_tape=False)
         first = _empty(pool, device, 2, wp.int32)
         wp.launch(_k.one_cell, dim=1, inputs=[n], outputs=[first], device=device, record_tape=False)
         return Cells(order, first, origin, 0.0, wp.vec3i(1, 1, 1))
-    dims_np = np.ones(3, dtype=np.int64) if h is None else _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
-    inv_h = 0.0 if h is None else 1.0 / h
+    dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
     dims = wp.vec3i(*[int(d) for d in dims_np])
     num_cells = int(np.prod(dims_np))
-    length, lmin, lmax = select if select is not None else (wp.empty(0, dtype=wp.float32, device=device), 0.0, 0.0)
+    bits, fine_bits = _fine_bits(num_cells, fine)
     keys = _empty(pool, device, 2 * n, wp.int32)
     values = _empty(pool, device, 2 * n, wp.int32)
     counts = _zeros(pool, device, num_cells + 1, wp.int32)
-    wp.launch(_k.cell_keys, dim=n, inputs=[points, origin, inv_h, dims, length, float(lmin), float(lmax)],
-              outputs=[keys, values, counts], device=device, record_tape=False)
-    wp.utils.radix_sort_pairs(keys, values, n, end_bit=max(int(num_cells).bit_length(), 1))
+    wp.launch(_k.cell_keys, dim=n, inputs=[points, origin, 1.0 / h, dims, fine_bits], outputs=[keys, values, counts],
+              device=device, record_tape=False)
+    wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
     first = _empty(pool, device, num_cells + 1, wp.int32)
     wp.utils.array_scan(counts, first, inclusive=False)
-    return Cells(values[:n], first, origin, inv_h, dims)
+    return Cells(values[:n], first, origin, 1.0 / h, dims)
+
+
+def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, h: float, tier_hi: list, slots: list,
+                     grid_tiers: int, pool: Pool | None = None) -> tuple[wp.array, wp.array, Cells]:
+    """One sort of the edges ``points`` (midpoints) for every length tier (``tier_hi``: the tiers' upper bounds,
+    ascending, the last infinite; ``slots[t]``: tier ``t``'s grid, ``grid_tiers`` for the bucket tested densely;
+    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Returns
+    ``(order, first, grid)``: grid ``g``'s cells start at ``first[g * n : (g + 1) * n + 1]`` with ``n`` cells of
+    ``grid`` each, the dense bucket at ``first[grid_tiers * n : grid_tiers * n + 2]``."""
+    device = points.device
+    n = points.shape[0]
+    dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
+    dims = wp.vec3i(*[int(d) for d in dims_np])
+    buckets = grid_tiers * int(np.prod(dims_np)) + 1
+    keys = _empty(pool, device, 2 * n, wp.int32)
+    values = _empty(pool, device, 2 * n, wp.int32)
+    counts = _zeros(pool, device, buckets + 1, wp.int32)
+    hi = [float(v) for v in tier_hi] + [np.inf] * (4 - len(tier_hi))
+    slot = [int(v) for v in slots] + [grid_tiers] * (4 - len(slots))
+    origin = wp.vec3(*b.lo)
+    bits, fine_bits = _fine_bits(buckets, True)
+    wp.launch(_k.tier_cell_keys, dim=n,
+              inputs=[points, origin, 1.0 / h, dims, length, wp.vec4(*hi), wp.vec4i(*slot), int(grid_tiers),
+                      fine_bits],
+              outputs=[keys, values, counts], device=device, record_tape=False)
+    wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
+    first = _empty(pool, device, buckets + 1, wp.int32)
+    wp.utils.array_scan(counts, first, inclusive=False)
+    return values[:n], first, Cells(values[:n], first, origin, 1.0 / h, dims)
 
 
 # A group's threads walk their own boxes when the group's shared box has this many times more cells than the
@@ -303,73 +354,85 @@ def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Po
 
 def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, *,
                  spatial_order: bool, splits: int | None = None, like: Groups | None = None, per_thread: int = 1,
-                 work: float = 0.0, cache: dict | None = None, pool: Pool | None = None) -> Groups:
+                 work: float = 0.0, cache: dict | None = None, pool: Pool | None = None,
+                 more_pads: tuple = ()) -> Groups | list[Groups]:
     """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``.
 
     ``spatial_order`` sorts the queries along a Morton curve first (:func:`query_order`, kept in ``cache``), so a
     group's balls are close together (only worth it for groups of more than one query over more than one cell).
-    ``like``: reuse the order, group size, splits and queries per thread of another traversal of the same queries
-    (their partial sums then line up). ``work``: expected candidate sources per query (see :func:`launch_shape`).
+    ``like``: reuse the order, group size and queries per thread of another traversal of the same queries (their
+    partial sums then line up), and its splits or fewer. ``work``: expected candidate sources per query (see
+    :func:`launch_shape`). ``more_pads``: also the groups of traversals of the same cells with these pads (the
+    edge-length tiers of :func:`ball_plans`), in the same launches; then a list, ``pad``'s first.
     """
     device = points.device
     count = points.shape[0]
     size, default_splits = launch_shape(device, count, per_thread, work)
-    splits = default_splits if splits is None else splits
     if like is not None:
-        order, size, splits, per_thread = like.order, like.size, like.splits, like.per_thread
-    elif spatial_order:
-        order = query_order(points, b, cache, pool)
+        # a traversal adding to ``like``'s partial sums: at most its splits (fewer when it expects less work)
+        order, size, per_thread = like.order, like.size, like.per_thread
+        splits = like.splits if splits is not None else min(like.splits, default_splits)
     else:
-        order = _empty(pool, device, count, wp.int32)
-        wp.launch(_k.iota, dim=count, outputs=[order], device=device, record_tape=False)
+        splits = default_splits if splits is None else splits
+        if spatial_order:
+            order = query_order(points, b, cache, pool)
+        else:
+            order = _empty(pool, device, count, wp.int32)
+            wp.launch(_k.iota, dim=count, outputs=[order], device=device, record_tape=False)
     num_groups = (count + size - 1) // size
-    box_lo = _empty(pool, device, num_groups, wp.vec3i)
-    box_hi = _empty(pool, device, num_groups, wp.vec3i)
+    if size // per_thread > 32:
+        raise ValueError(f"groups of at most 32 threads (kernels.vnc.group_boxes), got {size // per_thread}")
+    pads = [float(pad), *[float(p) for p in more_pads]]
+    if len(pads) > 4:
+        raise ValueError(f"at most 4 pads, got {len(pads)}")
+    box_lo = _empty(pool, device, (len(pads), num_groups), wp.vec3i)
+    box_hi = _empty(pool, device, (len(pads), num_groups), wp.vec3i)
     # float32 rounding of p +- r must never drop a cell that holds a source within reach
     margin = 1e-6 * max(float(np.abs(np.concatenate([b.lo, b.hi])).max()), b.rmax)
-    pad = float(pad + margin)
     if tuple(cells.dims) == (1, 1, 1):  # one cell: every box is that cell
         box_lo.zero_()
         box_hi.zero_()
     else:
         threads = -(-count // per_thread)
-        ext_lo = _empty(pool, device, threads, wp.vec3)
-        ext_hi = _empty(pool, device, threads, wp.vec3)
-        own = _empty(pool, device, threads, wp.float32)
+        acc = _zeros(pool, device, (3, len(pads), num_groups), wp.vec3i)  # lowest, highest cells, most cells
         wp.launch(_k.thread_extents, dim=threads,
-                  inputs=[points, order, radius, pad, count, per_thread, cells.origin, cells.inv_h, cells.dims],
-                  outputs=[ext_lo, ext_hi, own], device=device, record_tape=False)
-        wp.launch(_k.group_boxes, dim=num_groups,
-                  inputs=[ext_lo, ext_hi, own, size // per_thread, cells.origin, cells.inv_h, cells.dims,
-                          SPREAD if size > per_thread else 1.0e30],
-                  outputs=[box_lo, box_hi], device=device, record_tape=False)
-    return Groups(order, box_lo, box_hi, size, splits, count, num_groups * size, pad, per_thread)
+                  inputs=[points, order, radius, margin, count, per_thread, size // per_thread, cells.origin,
+                          cells.inv_h, cells.dims, wp.vec4(*(pads + [0.0] * (4 - len(pads))))],
+                  outputs=[acc[0], acc[1], acc[2]], device=device, record_tape=False)
+        wp.launch(_k.group_boxes, dim=(len(pads), num_groups),
+                  inputs=[acc[0], acc[1], acc[2], SPREAD if size > per_thread else 1.0e30], outputs=[box_lo, box_hi],
+                  device=device, record_tape=False)
+    groups = [Groups(order, box_lo[t], box_hi[t], size, splits, count, num_groups * size, p + margin, per_thread)
+              for t, p in enumerate(pads)]
+    return groups if more_pads else groups[0]
 
 
 def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strategy: str, reach: float,
-         pad: float = 0.0, *, splits: int | None = None, select: tuple | None = None,
-         like: Groups | None = None, max_per_thread: int = 1, cache: dict | None = None,
-         pool: Pool | None = None, selected: int | None = None) -> tuple[Cells, Groups]:
-    """Cells over ``sources`` (those kept by ``select``, see :func:`build_cells`; ``selected``: how many, when
-    known) and groups of the query ``points`` (balls ``radius[k] + pad``, typically ``reach``) for a concrete
-    "grid" or "dense" strategy, with up to ``max_per_thread`` queries per thread (:func:`queries_per_thread`, from
-    the expected candidates per query that also set the splits)."""
-    device = points.device
-    count = float(sources.shape[0] if selected is None else selected)
+         pad: float = 0.0, *, splits: int | None = None, max_per_thread: int = 1, cache: dict | None = None,
+         pool: Pool | None = None, fine: bool = False, busy_cell: float | None = None) -> tuple[Cells, Groups]:
+    """Cells over ``sources`` (``fine``: in Morton order within each, see :func:`build_cells`) and groups of the
+    query ``points`` (balls ``radius[k] + pad``, typically ``reach``) for a concrete "grid" or "dense" strategy, with
+    up to ``max_per_thread`` queries per thread (:func:`queries_per_thread`, from the expected candidates per query
+    that also set the splits; ``busy_cell``: see :func:`grid_cell`)."""
     if strategy == "dense":
-        h = None
-        work = count
+        h, work = None, float(sources.shape[0])
     else:
-        h = cell_size(b, reach, sources.shape[0], device)
-        work = dense_fraction(b, reach, h) * count
-    per_thread = queries_per_thread(device, work, max_per_thread)
-    size, _ = launch_shape(device, points.shape[0], per_thread)
+        h, work = grid_cell(b, reach, sources.shape[0], points.device, max_per_thread, busy_cell)
+    cells = build_cells(sources, b, h, pool, fine)
+    return cells, _groups(points, radius, pad, cells, b, work, splits=splits, max_per_thread=max_per_thread,
+                          cache=cache, pool=pool)
+
+
+def _groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, work: float, *,
+            splits: int | None, max_per_thread: int, like: Groups | None = None, cache: dict | None = None,
+            pool: Pool | None = None) -> Groups:
+    """:func:`build_groups` for a traversal expecting ``work`` candidates per query."""
+    per_thread = queries_per_thread(points.device, work, max_per_thread) if like is None else like.per_thread
+    size, _ = launch_shape(points.device, points.shape[0], per_thread)
     # queries in Morton order for the dense traversal too: a warp's balls then lie together, and a source beyond the
     # cut-off of all of them costs it no exp2
-    cells = build_cells(sources, b, h, select, pool)
-    groups = build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
-                          per_thread=per_thread, work=work, cache=cache, pool=pool)
-    return cells, groups
+    return build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
+                        per_thread=per_thread, work=work, cache=cache, pool=pool)
 
 
 # Edge-length tiers of the ball (Eq. 1-2) kernels: an edge reaches a ball from as far as half its length beyond the
@@ -377,6 +440,12 @@ def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strat
 # them) then do not widen every query's box. Tier bounds: TIER_BASE x mean edge length, doubling, at most MAX_TIERS.
 TIER_BASE = 1.5
 MAX_TIERS = 4
+
+
+# Cell size of a busy ball traversal, as a fraction of the reach (CELL_FRACTION otherwise): longer rows, whose runs
+# of edge records the chunked ball kernel can test as a whole (on an H200 4-15 % faster than half the reach at 16-32
+# mean edge lengths, within 5 % either way at a quarter of the diagonal: docs/results/tune_h200_chunks.json).
+BUSY_BALL_CELL = 1.0
 
 
 # A tier with at most this many query x edge pairs in all is traversed densely: a few long edges are cheaper to
@@ -389,27 +458,50 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
                *, splits: int | None = None, max_per_thread: int = 1, cache: dict | None = None,
                pool: Pool | None = None, tier_size=None) -> list[tuple[Cells, Groups]]:
     """The traversals of the ball kernels: one over all edges ("dense", or edges of similar lengths), else one per
-    edge-length tier, all sharing the query order and queries per thread (their partial sums line up; the first tier,
-    the short edges, decides them). ``tier_size(lo, hi)``: the number of edges with ``lo < length <= hi``, when known
-    on the host; a tier of few pairs is then traversed densely."""
+    edge-length tier through the grid, then one dense traversal of the tiers with few pairs (``tier_size(lo, hi)``:
+    the number of edges with ``lo < length <= hi``, when known on the host; a tier known to be empty is skipped).
+
+    Every traversal reads one sort of the edges (:func:`build_tier_cells`: one packing of the edge records serves
+    them all) and shares the query order and queries per thread of the first, the short edges', whose partial sums
+    it adds to; a later traversal takes fewer splits when it expects fewer candidates (never more than the first).
+    """
     if strategy == "dense" or b.lmax <= TIER_BASE * b.lmean:
         pad = 0.5 * b.lmax
         return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits,
-                     max_per_thread=max_per_thread, cache=cache, pool=pool)]
+                     max_per_thread=max_per_thread, cache=cache, pool=pool, fine=True, busy_cell=BUSY_BALL_CELL)]
     bounds_ = [-1.0]
     while len(bounds_) < MAX_TIERS and TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1) < b.lmax:
         bounds_.append(TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1))
     bounds_.append(np.inf)
-    plans, first = [], None
-    for lo, hi in zip(bounds_[:-1], bounds_[1:]):
-        pad = 0.5 * min(hi, b.lmax)
-        n = None if tier_size is None else int(tier_size(lo, hi))
-        # the first tier (the short edges) sets the query order and splits that every tier shares: never dense
-        limit = DENSE_TIER_PAIRS["cuda" if points.device.is_cuda else "cpu"]
-        small = first is not None and n is not None and n * points.shape[0] <= limit
-        p = plan(points, radius, mid, b, "dense" if small else strategy, b.rmean + pad, pad, splits=splits,
-                 select=(length, lo, hi), like=first, max_per_thread=max_per_thread, cache=cache, pool=pool,
-                 selected=n)
-        first = first or p[1]
-        plans.append(p)
+    tiers = list(zip(bounds_[:-1], bounds_[1:]))
+    sizes = [None if tier_size is None else int(tier_size(lo, hi)) for lo, hi in tiers]
+    limit = DENSE_TIER_PAIRS["cuda" if points.device.is_cuda else "cpu"]
+    # the first tier (the short edges) is always a grid traversal: it sets the order and splits every tier shares
+    grid = [t for t, n in enumerate(sizes) if t == 0 or n is None or n * points.shape[0] > limit]
+    slots = [grid.index(t) if t in grid else len(grid) for t in range(len(tiers))]
+    dense = sum(n for t, n in enumerate(sizes) if t not in grid)
+    h, _ = grid_cell(b, b.rmean + 0.5 * min(tiers[0][1], b.lmax), mid.shape[0] if sizes[0] is None else sizes[0],
+                     points.device, max_per_thread, BUSY_BALL_CELL)
+    order, first, cells0 = build_tier_cells(mid, length, b, h, [hi for _, hi in tiers], slots, len(grid), pool)
+    nc = int(np.prod(tuple(cells0.dims)))
+    # the grid tiers' groups in one pair of launches: boxes of the same queries and cells, with each tier's pad
+    pads = [0.5 * min(tiers[t][1], b.lmax) for t in grid]
+    works = [dense_fraction(b, b.rmean + p, h) * (mid.shape[0] if sizes[t] is None else sizes[t])
+             for p, t in zip(pads, grid)]
+    per_thread = queries_per_thread(points.device, works[0], max_per_thread)
+    size, _ = launch_shape(points.device, points.shape[0], per_thread)
+    groups = build_groups(points, radius, pads[0], cells0, b, spatial_order=size > 1, splits=splits,
+                          per_thread=per_thread, work=works[0], cache=cache, pool=pool, more_pads=pads[1:])
+    groups = groups if isinstance(groups, list) else [groups]
+    lead = groups[0]
+    plans = []
+    for g, grp in enumerate(groups):
+        if g > 0 and splits is None:  # fewer splits for a tier that expects less work
+            grp = replace(grp, splits=min(lead.splits, launch_shape(points.device, points.shape[0], per_thread,
+                                                                    works[g])[1]))
+        plans.append((Cells(order, first[g * nc:(g + 1) * nc + 1], cells0.origin, cells0.inv_h, cells0.dims), grp))
+    if dense > 0:
+        cells = Cells(order, first[len(grid) * nc:len(grid) * nc + 2], cells0.origin, 0.0, wp.vec3i(1, 1, 1))
+        plans.append((cells, _groups(points, radius, 0.5 * b.lmax, cells, b, float(dense), splits=splits,
+                                     max_per_thread=max_per_thread, like=lead, cache=cache, pool=pool)))
     return plans

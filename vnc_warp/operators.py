@@ -226,12 +226,13 @@ def _soft_sources(cells, f: EdgeFields, device, pool: _pairs.Pool | None = None)
     return pos, val
 
 
-def _ball_sources(cells, x: wp.array, f: EdgeFields, device, pool: _pairs.Pool | None = None
+def _ball_sources(cells, x: wp.array, f: EdgeFields, device, pool: _pairs.Pool | None = None, form: str = "half"
                   ) -> tuple[wp.array, wp.array, wp.array]:
-    """Edge segments (midpoint, half-vector) and angles+normals as vec4s in cell order."""
+    """Edge segments and angles+normals as vec4s in cell order (:func:`pack_ball_sources`): ``form`` "half"
+    (midpoint, half-vector) or "unit" (midpoint, unit direction)."""
     E = f.edges.shape[0]
     seg_m, seg_h, val = (_pairs._empty(pool, device, E, wp.vec4) for _ in range(3))
-    wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal],
+    wp.launch(_k.pack_ball_sources, dim=E, inputs=[cells.order, x, f.edges, f.angle, f.normal, int(form == "unit")],
               outputs=[seg_m, seg_h, val], device=device, record_tape=False)
     return seg_m, seg_h, val
 
@@ -422,13 +423,21 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     groups = plans[0][1]
     ns = groups.splits
     parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
-    variant = dict(_k.BALL_VARIANT)
-    if variant.get("prefilter") is None:
-        variant["prefilter"] = concrete == "grid"
-    kernel = _k.ball_cells_kernel(groups.per_thread, **variant)
+    reach = b.rmean / max(b.lmean, 1e-30)
+    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1)) for c, _ in plans]
+    variant = variants[0]
+    # every traversal reads the edges in one sorted order (ball_plans)
+    seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool, form=variant["form"])
+    nchunks = -(-E // int(_k.CHUNK)) if any(v["chunks"] for v in variants) else 0
+    chunk_lo, chunk_hi = (pool.empty(nchunks, wp.vec3) for _ in range(2))
+    if nchunks:
+        # few threads, each a serial loop: blocks of one warp spread them over every multiprocessor
+        wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, int(variant["form"] == "unit")],
+                  outputs=[chunk_lo, chunk_hi], device=device, block_dim=32)
     for i, (cells, grp) in enumerate(plans):
-        seg_m, seg_h, val = _ball_sources(cells, x, f, device, pool)
-        wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, ns, int(i > 0)],
+        kernel = _k.ball_cells_kernel(grp.per_thread, **variants[i])
+        wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, chunk_lo,
+                                               chunk_hi, grp.splits, int(i > 0)],
                   outputs=parts, device=device)
     wp.launch(_k.reduce_sums, dim=P, inputs=[groups.order, *parts], outputs=outputs, device=device)
     return outputs

@@ -155,6 +155,8 @@ def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool
         rows = 16 * len(plans) * groups.splits
         part_num = pool.empty((rows, groups.padded), wp.float32)
         part_den = pool.empty((rows, groups.padded), wp.float32)
+        if not soft:  # every traversal reads the edges in one sorted order (ball_plans)
+            seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool)
         for i, (cells, grp) in enumerate(plans):
             if soft:
                 pos, val = _soft_sources(cells, f, device, pool)
@@ -162,7 +164,6 @@ def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
                           outputs=[part_num, part_den], device=device)
             else:
-                seg_m, seg_h, val = _ball_sources(cells, x, f, device, pool)
                 wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
                           inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_m, seg_h, val, grp.splits,
                                   i * grp.splits],
