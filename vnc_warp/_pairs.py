@@ -263,12 +263,12 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, pool: Pool | None 
 
 
 def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, h: float, tier_hi: list, slots: list,
-                     grid_tiers: int, pool: Pool | None = None) -> tuple[wp.array, wp.array, Cells]:
+                     grid_tiers: int, pool: Pool | None = None) -> Cells:
     """One sort of the edges ``points`` (midpoints) for every length tier (``tier_hi``: the tiers' upper bounds,
     ascending, the last infinite; ``slots[t]``: tier ``t``'s grid, ``grid_tiers`` for the bucket tested densely;
-    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Returns
-    ``(order, first, grid)``: grid ``g``'s cells start at ``first[g * n : (g + 1) * n + 1]`` with ``n`` cells of
-    ``grid`` each, the dense bucket at ``first[grid_tiers * n : grid_tiers * n + 2]``."""
+    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Returns the cells of
+    every grid at once: grid ``g``'s cells start at ``first[g * n : (g + 1) * n + 1]`` with ``n`` cells of the
+    returned dims each, the dense bucket at ``first[grid_tiers * n : grid_tiers * n + 2]``."""
     device = points.device
     n = points.shape[0]
     dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
@@ -288,7 +288,7 @@ def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, h: float, ti
     wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
     first = _empty(pool, device, buckets + 1, wp.int32)
     wp.utils.array_scan(counts, first, inclusive=False)
-    return values[:n], first, Cells(values[:n], first, origin, 1.0 / h, dims)
+    return Cells(values[:n], first, origin, 1.0 / h, dims)
 
 
 # A group's threads walk their own boxes when the group's shared box has this many times more cells than the
@@ -352,18 +352,18 @@ def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Po
     return order
 
 
-def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, *,
+def build_groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b: Bounds, *,
                  spatial_order: bool, splits: int | None = None, like: Groups | None = None, per_thread: int = 1,
-                 work: float = 0.0, cache: dict | None = None, pool: Pool | None = None,
-                 more_pads: tuple = ()) -> Groups | list[Groups]:
-    """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``.
+                 work: float = 0.0, cache: dict | None = None, pool: Pool | None = None) -> list[Groups]:
+    """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``, one
+    :class:`Groups` per pad of ``pads`` (at most 4: the edge-length tiers of :func:`ball_plans`), in the same
+    launches; the first pad's traversal decides the splits, the others share them.
 
     ``spatial_order`` sorts the queries along a Morton curve first (:func:`query_order`, kept in ``cache``), so a
     group's balls are close together (only worth it for groups of more than one query over more than one cell).
     ``like``: reuse the order, group size and queries per thread of another traversal of the same queries (their
     partial sums then line up), and its splits or fewer. ``work``: expected candidate sources per query (see
-    :func:`launch_shape`). ``more_pads``: also the groups of traversals of the same cells with these pads (the
-    edge-length tiers of :func:`ball_plans`), in the same launches; then a list, ``pad``'s first.
+    :func:`launch_shape`).
     """
     device = points.device
     count = points.shape[0]
@@ -382,7 +382,7 @@ def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b
     num_groups = (count + size - 1) // size
     if size // per_thread > 32:
         raise ValueError(f"groups of at most 32 threads (kernels.vnc.group_boxes), got {size // per_thread}")
-    pads = [float(pad), *[float(p) for p in more_pads]]
+    pads = [float(p) for p in pads]
     if len(pads) > 4:
         raise ValueError(f"at most 4 pads, got {len(pads)}")
     box_lo = _empty(pool, device, (len(pads), num_groups), wp.vec3i)
@@ -404,7 +404,7 @@ def build_groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b
                   device=device, record_tape=False)
     groups = [Groups(order, box_lo[t], box_hi[t], size, splits, count, num_groups * size, p + margin, per_thread)
               for t, p in enumerate(pads)]
-    return groups if more_pads else groups[0]
+    return groups
 
 
 def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strategy: str, reach: float,
@@ -419,19 +419,19 @@ def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strat
     else:
         h, work = grid_cell(b, reach, sources.shape[0], points.device, max_per_thread, busy_cell)
     cells = build_cells(sources, b, h, pool, fine)
-    return cells, _groups(points, radius, pad, cells, b, work, splits=splits, max_per_thread=max_per_thread,
-                          cache=cache, pool=pool)
+    return cells, _groups(points, radius, [pad], cells, b, work, splits=splits, max_per_thread=max_per_thread,
+                          cache=cache, pool=pool)[0]
 
 
-def _groups(points: wp.array, radius: wp.array, pad: float, cells: Cells, b: Bounds, work: float, *,
+def _groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b: Bounds, work: float, *,
             splits: int | None, max_per_thread: int, like: Groups | None = None, cache: dict | None = None,
-            pool: Pool | None = None) -> Groups:
-    """:func:`build_groups` for a traversal expecting ``work`` candidates per query."""
+            pool: Pool | None = None) -> list[Groups]:
+    """:func:`build_groups` for a traversal expecting ``work`` candidates per query (with the first pad)."""
     per_thread = queries_per_thread(points.device, work, max_per_thread) if like is None else like.per_thread
     size, _ = launch_shape(points.device, points.shape[0], per_thread)
     # queries in Morton order for the dense traversal too: a warp's balls then lie together, and a source beyond the
     # cut-off of all of them costs it no exp2
-    return build_groups(points, radius, pad, cells, b, spatial_order=size > 1, splits=splits, like=like,
+    return build_groups(points, radius, pads, cells, b, spatial_order=size > 1, splits=splits, like=like,
                         per_thread=per_thread, work=work, cache=cache, pool=pool)
 
 
@@ -482,26 +482,24 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     dense = sum(n for t, n in enumerate(sizes) if t not in grid)
     h, _ = grid_cell(b, b.rmean + 0.5 * min(tiers[0][1], b.lmax), mid.shape[0] if sizes[0] is None else sizes[0],
                      points.device, max_per_thread, BUSY_BALL_CELL)
-    order, first, cells0 = build_tier_cells(mid, length, b, h, [hi for _, hi in tiers], slots, len(grid), pool)
+    cells0 = build_tier_cells(mid, length, b, h, [hi for _, hi in tiers], slots, len(grid), pool)
+    order, first = cells0.order, cells0.first
     nc = int(np.prod(tuple(cells0.dims)))
     # the grid tiers' groups in one pair of launches: boxes of the same queries and cells, with each tier's pad
     pads = [0.5 * min(tiers[t][1], b.lmax) for t in grid]
     works = [dense_fraction(b, b.rmean + p, h) * (mid.shape[0] if sizes[t] is None else sizes[t])
              for p, t in zip(pads, grid)]
-    per_thread = queries_per_thread(points.device, works[0], max_per_thread)
-    size, _ = launch_shape(points.device, points.shape[0], per_thread)
-    groups = build_groups(points, radius, pads[0], cells0, b, spatial_order=size > 1, splits=splits,
-                          per_thread=per_thread, work=works[0], cache=cache, pool=pool, more_pads=pads[1:])
-    groups = groups if isinstance(groups, list) else [groups]
+    groups = _groups(points, radius, pads, cells0, b, works[0], splits=splits, max_per_thread=max_per_thread,
+                     cache=cache, pool=pool)
     lead = groups[0]
     plans = []
     for g, grp in enumerate(groups):
         if g > 0 and splits is None:  # fewer splits for a tier that expects less work
-            grp = replace(grp, splits=min(lead.splits, launch_shape(points.device, points.shape[0], per_thread,
+            grp = replace(grp, splits=min(lead.splits, launch_shape(points.device, points.shape[0], lead.per_thread,
                                                                     works[g])[1]))
         plans.append((Cells(order, first[g * nc:(g + 1) * nc + 1], cells0.origin, cells0.inv_h, cells0.dims), grp))
     if dense > 0:
         cells = Cells(order, first[len(grid) * nc:len(grid) * nc + 2], cells0.origin, 0.0, wp.vec3i(1, 1, 1))
-        plans.append((cells, _groups(points, radius, 0.5 * b.lmax, cells, b, float(dense), splits=splits,
-                                     max_per_thread=max_per_thread, like=lead, cache=cache, pool=pool)))
+        plans.append((cells, _groups(points, radius, [0.5 * b.lmax], cells, b, float(dense), splits=splits,
+                                     max_per_thread=max_per_thread, like=lead, cache=cache, pool=pool)[0]))
     return plans
