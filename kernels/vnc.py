@@ -692,16 +692,34 @@ def cell_keys(
     wp.atomic_add(counts, cell, 1)
 
 
+@wp.func
+def tier_grid(slot: int, inv_h: wp.vec4, d0: wp.vec3i, d1: wp.vec3i, d2: wp.vec3i, d3: wp.vec3i):
+    """``(1 / cell size, dims)`` of grid ``slot`` (0-3) of the edge-length tiers."""
+    d = d0
+    if slot == 1:
+        d = d1
+    elif slot == 2:
+        d = d2
+    elif slot == 3:
+        d = d3
+    return inv_h[slot], d
+
+
 @wp.kernel(enable_backward=False)
 def tier_cell_keys(
     points: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
-    inv_h: float,
-    dims: wp.vec3i,
+    inv_h: wp.vec4,
+    dims0: wp.vec3i,
+    dims1: wp.vec3i,
+    dims2: wp.vec3i,
+    dims3: wp.vec3i,
+    base: wp.vec4i,
     length: wp.array(dtype=float),
     tier_hi: wp.vec4,
     tier_slot: wp.vec4i,
     grid_tiers: int,
+    dense_bucket: int,
     fine_bits: int,
     keys: wp.array(dtype=int),
     values: wp.array(dtype=int),
@@ -709,10 +727,10 @@ def tier_cell_keys(
 ):
     """Sort keys of edges in length tiers, for one sort that serves every tier: tier ``t`` holds the edges with
     ``tier_hi[t - 1] < length <= tier_hi[t]`` (``tier_hi`` ascending, the last one infinite). A tier traversed
-    through the grid (``tier_slot[t] = g < grid_tiers``) buckets an edge ``g * num_cells + cell``; every other tier
-    in bucket ``grid_tiers * num_cells``, tested densely. Keys: the bucket shifted left by ``fine_bits`` that order
-    a bucket along a Morton curve (within the cell, or the whole grid for the dense bucket); ``counts[bucket]``
-    (zeroed first) += 1."""
+    through a grid (``tier_slot[t] = g < grid_tiers``; grid ``g`` of cells ``1 / inv_h[g]`` and ``dims{g}`` from
+    ``origin``, coarser for longer edges) buckets an edge ``base[g] + cell``; every other tier in bucket
+    ``dense_bucket``, tested densely. Keys: the bucket shifted left by ``fine_bits`` that order a bucket along a
+    Morton curve (within the cell, or over grid 0 for the dense bucket); ``counts[bucket]`` (zeroed first) += 1."""
     i = wp.tid()
     L = length[i]
     t = int(0)
@@ -720,17 +738,18 @@ def tier_cell_keys(
         if L > tier_hi[k]:
             t = k + 1
     slot = tier_slot[t]
-    nc = dims[0] * dims[1] * dims[2]
-    q = (points[i] - origin) * inv_h
-    c = cell_coord(points[i], origin, inv_h, dims)
-    bucket = grid_tiers * nc
+    bucket = dense_bucket
     fine = int(0)
     if slot < grid_tiers:
-        bucket = slot * nc + cell_index(c, dims)
+        ih, dims = tier_grid(slot, inv_h, dims0, dims1, dims2, dims3)
+        q = (points[i] - origin) * ih
+        c = cell_coord(points[i], origin, ih, dims)
+        bucket = base[slot] + cell_index(c, dims)
         fine = fine_code(q, c, fine_bits)
     else:
-        # the whole grid as one cell
-        fine = fine_code(wp.cw_div(q, wp.vec3(float(dims[0]), float(dims[1]), float(dims[2]))), wp.vec3i(0),
+        # the whole of grid 0 as one cell
+        q = (points[i] - origin) * inv_h[0]
+        fine = fine_code(wp.cw_div(q, wp.vec3(float(dims0[0]), float(dims0[1]), float(dims0[2]))), wp.vec3i(0),
                          fine_bits)
     keys[i] = (bucket << fine_bits) | fine
     values[i] = i
@@ -774,6 +793,30 @@ def iota(values: wp.array(dtype=int)):
 BOX_OFFSET = wp.constant(1 << 30)
 
 
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 800)
+    const unsigned m = __activemask();
+    if (__reduce_min_sync(m, g) == __reduce_max_sync(m, g)) {
+        const int x = __reduce_max_sync(m, v[0]);
+        const int y = __reduce_max_sync(m, v[1]);
+        const int z = __reduce_max_sync(m, v[2]);
+        if ((int)(threadIdx.x & 31) != __ffs(m) - 1)
+            return wp::vec3i(0, 0, 0);
+        return wp::vec3i(x, y, z);
+    }
+#endif
+    return v;
+"""
+)
+def group_max(v: wp.vec3i, g: int) -> wp.vec3i:
+    """Componentwise maximum of ``v`` (non-negative) over the threads of a CUDA warp that belong to group ``g``,
+    returned to one of them, zero to the others (which then skip their atomic): a warp of one group issues one
+    atomic instead of 32. Returns ``v`` itself where the warp's threads are of several groups, on the CPU and
+    before sm_80 (no ``__reduce_max_sync``)."""
+    ...
+
+
 @wp.kernel(enable_backward=False)
 def thread_extents(
     points: wp.array(dtype=wp.vec3),
@@ -784,8 +827,11 @@ def thread_extents(
     per_thread: int,
     threads_per_group: int,
     origin: wp.vec3,
-    inv_h: float,
-    dims: wp.vec3i,
+    inv_h: wp.vec4,
+    dims0: wp.vec3i,
+    dims1: wp.vec3i,
+    dims2: wp.vec3i,
+    dims3: wp.vec3i,
     pads: wp.vec4,
     low: wp.array2d(dtype=wp.vec3i),
     high: wp.array2d(dtype=wp.vec3i),
@@ -793,9 +839,10 @@ def thread_extents(
 ):
     """Per thread of a traversal: the cells of the balls ``|x - p_k| <= radius[k] + margin + pads[t]`` of its
     ``per_thread`` consecutive sorted queries, for every traversal ``t`` (a row of ``low``: the edge-length tiers of
-    the ball kernels), gathered into its group's accumulators (zeroed first) by atomic maxima: ``low`` holds
-    ``BOX_OFFSET`` minus the smallest cell, ``high`` one past the largest, ``most.x`` the cells of the largest box of
-    one thread. One thread per entry: the reads of all queries are in flight together; :func:`group_boxes` ends."""
+    the ball kernels, each over its own grid ``1 / inv_h[t]``, ``dims{t}``), gathered into its group's accumulators
+    (zeroed first) by atomic maxima, one per warp (:func:`group_max`): ``low`` holds ``BOX_OFFSET`` minus the
+    smallest cell, ``high`` one past the largest, ``most.x`` the cells of the largest box of one thread. One thread
+    per entry: the reads of all queries are in flight together; :func:`group_boxes` ends."""
     u = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
@@ -807,11 +854,18 @@ def thread_extents(
     g = u // threads_per_group
     for t in range(low.shape[0]):
         e = wp.vec3(pads[t])
-        clo = cell_coord(lo - e, origin, inv_h, dims)
-        chi = cell_coord(hi + e, origin, inv_h, dims)
-        wp.atomic_max(low, t, g, wp.vec3i(BOX_OFFSET) - clo)
-        wp.atomic_max(high, t, g, chi + wp.vec3i(1))
-        wp.atomic_max(most, t, g, wp.vec3i(int(box_cells(clo, chi)), 0, 0))
+        ih, dims = tier_grid(t, inv_h, dims0, dims1, dims2, dims3)
+        clo = cell_coord(lo - e, origin, ih, dims)
+        chi = cell_coord(hi + e, origin, ih, dims)
+        a = group_max(wp.vec3i(BOX_OFFSET) - clo, g)
+        if a[0] > 0:
+            wp.atomic_max(low, t, g, a)
+        a = group_max(chi + wp.vec3i(1), g)
+        if a[0] > 0:
+            wp.atomic_max(high, t, g, a)
+        a = group_max(wp.vec3i(int(box_cells(clo, chi)), 0, 0), g)
+        if a[0] > 0:
+            wp.atomic_max(most, t, g, a)
 
 
 @wp.kernel(enable_backward=False)

@@ -129,6 +129,66 @@ def test_every_ball_kernel_variant(form, chunks, prefilter, cuda_launch_shape, m
                                            err_msg=f"{strategy}, tau={tau:.3g}, kappa={kappa}")
 
 
+def _numpy_group_boxes(x, radius, order, size, per_thread, margin, pad, origin, inv_h, dims):
+    """float32 reference of build_groups' boxes: per group of ``size`` sorted queries, the cells reached by its threads'
+    balls (``per_thread`` queries each), marked ``lo.x = -1`` when that box holds more than SPREAD times the cells of
+    the largest box of one thread."""
+    f32 = np.float32
+    los, his = [], []
+    for g0 in range(0, len(order), size):
+        clos, chis = [], []
+        for t0 in range(g0, min(g0 + size, len(order)), per_thread):
+            k = order[t0:min(t0 + per_thread, g0 + size, len(order))]
+            e = (radius[k] + f32(margin)).astype(f32)[:, None]
+            lo = (x[k] - e).min(0) - f32(pad)
+            hi = (x[k] + e).max(0) + f32(pad)
+            cell = lambda q: np.clip(np.floor((q - origin) * f32(inv_h)), 0, dims - 1).astype(int)  # noqa: E731
+            clos.append(cell(lo))
+            chis.append(cell(hi))
+        clos, chis = np.array(clos), np.array(chis)
+        lo, hi = clos.min(0), chis.max(0)
+        most = np.prod(chis - clos + 1, axis=1).max()
+        if np.prod(hi - lo + 1) > _pairs.SPREAD * most:
+            lo = lo.copy()
+            lo[0] = -1
+        los.append(lo)
+        his.append(hi)
+    return np.array(los), np.array(his)
+
+
+@pytest.mark.parametrize("per_thread,size", [(1, 32), (4, 128), (1, 16), (2, 8)])
+def test_group_boxes_match_numpy(per_thread, size, monkeypatch, device):
+    """The group boxes of two traversals at once (two pads, each on a grid of its own), gathered by per-warp maxima
+    and atomics on CUDA (kernels.vnc.group_max; groups of fewer than 32 threads share a warp), equal a float32 numpy
+    reference: two clusters of balls of random radii, so that some groups span both and walk per-thread boxes, and
+    a count that leaves the last group partial."""
+    monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0: (size, 1))
+    rng = np.random.default_rng(11)
+    n = 1000
+    pts = np.concatenate([rng.normal(0.0, 0.3, (n // 2, 3)), rng.normal(4.0, 0.3, (n - n // 2, 3))]).astype(np.float32)
+    rad = rng.uniform(0.05, 0.4, n).astype(np.float32)
+    x = wp.array(pts, dtype=wp.vec3, device=device)
+    radius = wp.array(rad, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, radius)
+    pads, hs = [0.1, 0.7], [0.15, 0.45]
+    cells = []
+    for h in hs:
+        dims = np.floor((b.hi - b.lo) / h).astype(int) + 1
+        cells.append(_pairs.Cells(None, None, wp.vec3(*b.lo), 1.0 / h, wp.vec3i(*[int(d) for d in dims])))
+    groups = _pairs.build_groups(x, radius, pads, cells, b, spatial_order=True, per_thread=per_thread)
+    order = groups[0].order.numpy()
+    assert sorted(order.tolist()) == list(range(n))
+    margin = 1e-6 * max(float(np.abs(np.concatenate([b.lo, b.hi])).max()), b.rmax)
+    for grp, pad, c in zip(groups, pads, cells):
+        lo, hi = _numpy_group_boxes(pts, rad, order, size, per_thread, margin, pad, np.asarray(b.lo, np.float32),
+                                    c.inv_h, np.array(tuple(c.dims)))
+        got_lo = np.array([tuple(v) for v in grp.box_lo.numpy()])
+        got_hi = np.array([tuple(v) for v in grp.box_hi.numpy()])
+        assert (lo[:, 0] == -1).any() and (lo[:, 0] >= 0).any()  # both kinds of group
+        np.testing.assert_array_equal(got_hi, hi, err_msg=f"pad {pad}")
+        np.testing.assert_array_equal(got_lo, lo, err_msg=f"pad {pad}")
+
+
 @pytest.mark.parametrize("dense_tier_pairs", [0, 1 << 40], ids=["grid-tiers", "dense-tiers"])
 def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, monkeypatch, device):
     """A mesh whose edges span 0.1 to 3 units (a cylinder's sides and rings) is traversed by the ball kernels in
@@ -146,6 +206,9 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, 
     assert len(plans) > 1
     dense_tiers = [tuple(c.dims) == (1, 1, 1) for c, _ in plans[1:]]
     assert all(dense_tiers) if dense_tier_pairs else not any(dense_tiers)
+    if not dense_tier_pairs:  # each grid tier's cells in proportion to its reach: coarser for longer edges
+        inv_h = [c.inv_h for c, _ in plans]
+        assert all(a > b for a, b in zip(inv_h, inv_h[1:])), inv_h
     for r in (0.4, 1.5):
         num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
         for s in STRATEGIES:
@@ -153,6 +216,30 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, 
             np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"{s}, r={r}")
             got = vw.integrated_mean_curvature(mesh, r, device=device, strategy=s).numpy()
             np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1 {s}, r={r}")
+
+
+def test_first_tier_takes_all_edges_when_balls_barely_grow(device):
+    """An icosphere with one vertex pulled out (its edges up to ~1.7 mean lengths, just past the first tier): at a
+    radius of many edge lengths the longest edge widens the balls by under TIER_GROW, so one traversal takes every
+    edge; at one edge length it takes tiers. Both equal the float64 reference of Eqs. (1)-(2)."""
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    v = tm.vertices.copy()
+    v[0] *= 1.2
+    mesh = vw.load_mesh(trimesh.Trimesh(v, tm.faces, process=False))
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    L = f.length.numpy()
+    assert 1.6 < L.max() / L.mean() < 2.0
+    idx = np.arange(0, mesh.num_vertices, 5)
+    for mult, tiers in ((1.0, True), (40.0, False)):
+        r = mult * float(L.mean())
+        tau = wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)
+        b = _pairs.bounds(x, tau, f.length)
+        plans = _pairs.ball_plans(x, tau, f.mid, f.length, b, "grid")
+        assert (len(plans) > 1) == tiers, (mult, len(plans))
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices[idx], r, None)
+        H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy="grid")[0].numpy()
+        np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l")
 
 
 @pytest.mark.parametrize("dense_tier_pairs", [0, 1 << 40], ids=["grid-tiers", "dense-tiers"])
@@ -316,3 +403,7 @@ def test_busy_traversals_take_more_queries_per_thread_and_splits():
     assert _pairs.queries_per_thread(wp.get_device("cpu"), busy, 4) == 1
     assert _pairs.launch_shape(FakeGPU, 50_000, 4, busy)[1] > _pairs.launch_shape(FakeGPU, 50_000, 4, light)[1]
     assert _pairs.launch_shape(wp.get_device("cpu"), 50_000, 4, busy) == (4, 1)
+    # light traversals: fewer splits for more queries, but more than one while the threads fill the device only a
+    # few times over (shorter threads, shorter tail)
+    light_splits = [_pairs.launch_shape(FakeGPU, n, 1, light)[1] for n in (10_000, 50_000, 200_000, 800_000)]
+    assert light_splits == sorted(light_splits, reverse=True) and light_splits[-1] >= 2, light_splits

@@ -69,20 +69,32 @@ def queries_per_thread(device: wp.Device, work: float, most: int) -> int:
     return most if device.is_cuda and work >= BUSY_SOURCES else 1
 
 
+# Splits of a light traversal on CUDA: LIGHT_FILL x (resident threads / threads) ^ (2/3). Measured on an H200
+# (nefertiti and its subdivisions, koala; VNC-soft and VNC-hard at 2-8 mean edge lengths): the best splits were about
+# 10 at 50k vertices, 4 at 200k and 2 at 800k, where one split already gives three waves of threads: a thread's work
+# varies with the mesh's density, and shorter threads leave a shorter tail (800k, 4 l: 2.58 -> 2.25 ms soft,
+# 4.54 -> 4.04 ms hard).
+LIGHT_FILL = 3.3
+
+
 def launch_shape(device: wp.Device, count: int, per_thread: int = 1, work: float = 0.0) -> tuple[int, int]:
     """``(group size, splits)`` for ``count`` queries taken ``per_thread`` at a time, each expecting ``work``
-    candidate sources: one warp of threads per group and enough splits on CUDA to fill the device about twice
-    (four times for a busy traversal: its threads wait on loads of long rows, and more of them hide it); one thread
-    per group and no split on the (single-threaded) CPU device."""
+    candidate sources: one warp of threads per group and on CUDA enough splits to fill the device several times
+    (:data:`LIGHT_FILL`; a busy traversal four times: its threads wait on loads of long rows, and more of them hide
+    it); one thread per group and no split on the (single-threaded) CPU device."""
     if device.is_cpu:
         return per_thread, 1
     if SPLITS is not None:
         return _CUDA_GROUP * per_thread, int(SPLITS)
     threads = -(-count // per_thread)
     resident = 2048 * max(int(getattr(device, "sm_count", 0) or 0), 1)
-    fill = 4 if work >= BUSY_SOURCES else 2
-    cap = (32 if work >= BUSY_SOURCES else 16) * per_thread ** 0.5
-    return _CUDA_GROUP * per_thread, int(np.clip((fill * resident) // max(threads, 1), 1, cap))
+    if work >= BUSY_SOURCES:
+        splits = (4 * resident) // max(threads, 1)
+        cap = 32 * per_thread ** 0.5
+    else:
+        splits = round(LIGHT_FILL * (resident / max(threads, 1)) ** (2.0 / 3.0))
+        cap = 16 * per_thread ** 0.5
+    return _CUDA_GROUP * per_thread, int(np.clip(splits, 1, cap))
 
 
 class Pool:
@@ -262,33 +274,45 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, pool: Pool | None 
     return Cells(values[:n], first, origin, 1.0 / h, dims)
 
 
-def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, h: float, tier_hi: list, slots: list,
-                     grid_tiers: int, pool: Pool | None = None) -> Cells:
+def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, hs: list, tier_hi: list, slots: list,
+                     pool: Pool | None = None) -> list[Cells]:
     """One sort of the edges ``points`` (midpoints) for every length tier (``tier_hi``: the tiers' upper bounds,
-    ascending, the last infinite; ``slots[t]``: tier ``t``'s grid, ``grid_tiers`` for the bucket tested densely;
-    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Returns the cells of
-    every grid at once: grid ``g``'s cells start at ``first[g * n : (g + 1) * n + 1]`` with ``n`` cells of the
-    returned dims each, the dense bucket at ``first[grid_tiers * n : grid_tiers * n + 2]``."""
+    ascending, the last infinite; ``slots[t]``: tier ``t``'s grid, ``len(hs)`` for the bucket tested densely;
+    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Grid ``g`` has cells
+    of size ``hs[g]`` over ``b`` (coarser for the longer edges, whose balls reach farther). Returns the
+    :class:`Cells` of every grid, then (when some tier has no grid) the one cell of the dense bucket, all sharing one
+    ``order``."""
     device = points.device
     n = points.shape[0]
-    dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
-    dims = wp.vec3i(*[int(d) for d in dims_np])
-    buckets = grid_tiers * int(np.prod(dims_np)) + 1
+    if not 1 <= len(hs) <= 4:
+        raise ValueError(f"1 to 4 grids, got {len(hs)}")
+    dims_np = [_grid_dims(np.maximum(b.hi - b.lo, 0.0), h) for h in hs]
+    sizes = [int(np.prod(d)) for d in dims_np]
+    base = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    buckets = int(base[-1]) + 1  # the dense bucket last
     keys = _empty(pool, device, 2 * n, wp.int32)
     values = _empty(pool, device, 2 * n, wp.int32)
     counts = _zeros(pool, device, buckets + 1, wp.int32)
     hi = [float(v) for v in tier_hi] + [np.inf] * (4 - len(tier_hi))
-    slot = [int(v) for v in slots] + [grid_tiers] * (4 - len(slots))
+    slot = [int(v) for v in slots] + [len(hs)] * (4 - len(slots))
     origin = wp.vec3(*b.lo)
+    dims = [wp.vec3i(*[int(v) for v in d]) for d in dims_np]
+    inv_h = [1.0 / h for h in hs] + [0.0] * (4 - len(hs))
     bits, fine_bits = _fine_bits(buckets, True)
     wp.launch(_k.tier_cell_keys, dim=n,
-              inputs=[points, origin, 1.0 / h, dims, length, wp.vec4(*hi), wp.vec4i(*slot), int(grid_tiers),
-                      fine_bits],
+              inputs=[points, origin, wp.vec4(*inv_h), *(dims + [dims[0]] * (4 - len(dims))),
+                      wp.vec4i(*[int(v) for v in base[:4]] + [0] * (4 - min(len(base), 4))), length, wp.vec4(*hi),
+                      wp.vec4i(*slot), len(hs), buckets - 1, fine_bits],
               outputs=[keys, values, counts], device=device, record_tape=False)
     wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
     first = _empty(pool, device, buckets + 1, wp.int32)
     wp.utils.array_scan(counts, first, inclusive=False)
-    return Cells(values[:n], first, origin, 1.0 / h, dims)
+    order = values[:n]
+    cells = [Cells(order, first[int(base[g]):int(base[g + 1]) + 1], origin, 1.0 / hs[g], dims[g])
+             for g in range(len(hs))]
+    if len(slots) and max(slots) >= len(hs):
+        cells.append(Cells(order, first[buckets - 1:buckets + 1], origin, 0.0, wp.vec3i(1, 1, 1)))
+    return cells
 
 
 # A group's threads walk their own boxes when the group's shared box has this many times more cells than the
@@ -352,12 +376,12 @@ def query_order(points: wp.array, b: Bounds, cache: dict | None = None, pool: Po
     return order
 
 
-def build_groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b: Bounds, *,
+def build_groups(points: wp.array, radius: wp.array, pads: list, cells: list, b: Bounds, *,
                  spatial_order: bool, splits: int | None = None, like: Groups | None = None, per_thread: int = 1,
                  work: float = 0.0, cache: dict | None = None, pool: Pool | None = None) -> list[Groups]:
-    """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for a traversal of ``cells``, one
-    :class:`Groups` per pad of ``pads`` (at most 4: the edge-length tiers of :func:`ball_plans`), in the same
-    launches; the first pad's traversal decides the splits, the others share them.
+    """Group the queries ``points`` (balls of radius ``radius[k] + pad``) for traversals of ``cells`` (a
+    :class:`Cells` per pad), one :class:`Groups` per pad of ``pads`` (at most 4: the edge-length tiers of
+    :func:`ball_plans`), in the same launches; the first pad's traversal decides the splits, the others share them.
 
     ``spatial_order`` sorts the queries along a Morton curve first (:func:`query_order`, kept in ``cache``), so a
     group's balls are close together (only worth it for groups of more than one query over more than one cell).
@@ -383,21 +407,26 @@ def build_groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b
     if size // per_thread > 32:
         raise ValueError(f"groups of at most 32 threads (kernels.vnc.group_boxes), got {size // per_thread}")
     pads = [float(p) for p in pads]
-    if len(pads) > 4:
-        raise ValueError(f"at most 4 pads, got {len(pads)}")
+    if not 1 <= len(pads) <= 4 or len(cells) != len(pads):
+        raise ValueError(f"1 to 4 pads, each with its cells; got {len(pads)} pads and {len(cells)} cells")
     box_lo = _empty(pool, device, (len(pads), num_groups), wp.vec3i)
     box_hi = _empty(pool, device, (len(pads), num_groups), wp.vec3i)
     # float32 rounding of p +- r must never drop a cell that holds a source within reach
     margin = 1e-6 * max(float(np.abs(np.concatenate([b.lo, b.hi])).max()), b.rmax)
-    if tuple(cells.dims) == (1, 1, 1):  # one cell: every box is that cell
+    one_cell = [tuple(c.dims) == (1, 1, 1) for c in cells]
+    if all(one_cell):  # one cell: every box is that cell
         box_lo.zero_()
         box_hi.zero_()
     else:
+        if len({(tuple(c.origin)) for c in cells}) > 1:
+            raise ValueError("the traversals grouped together share the origin of their grids")
         threads = -(-count // per_thread)
         acc = _zeros(pool, device, (3, len(pads), num_groups), wp.vec3i)  # lowest, highest cells, most cells
+        inv_h = [c.inv_h for c in cells] + [0.0] * (4 - len(cells))
+        dims = [c.dims for c in cells] + [cells[0].dims] * (4 - len(cells))
         wp.launch(_k.thread_extents, dim=threads,
-                  inputs=[points, order, radius, margin, count, per_thread, size // per_thread, cells.origin,
-                          cells.inv_h, cells.dims, wp.vec4(*(pads + [0.0] * (4 - len(pads))))],
+                  inputs=[points, order, radius, margin, count, per_thread, size // per_thread, cells[0].origin,
+                          wp.vec4(*inv_h), *dims, wp.vec4(*(pads + [0.0] * (4 - len(pads))))],
                   outputs=[acc[0], acc[1], acc[2]], device=device, record_tape=False)
         wp.launch(_k.group_boxes, dim=(len(pads), num_groups),
                   inputs=[acc[0], acc[1], acc[2], SPREAD if size > per_thread else 1.0e30], outputs=[box_lo, box_hi],
@@ -419,14 +448,15 @@ def plan(points: wp.array, radius: wp.array, sources: wp.array, b: Bounds, strat
     else:
         h, work = grid_cell(b, reach, sources.shape[0], points.device, max_per_thread, busy_cell)
     cells = build_cells(sources, b, h, pool, fine)
-    return cells, _groups(points, radius, [pad], cells, b, work, splits=splits, max_per_thread=max_per_thread,
+    return cells, _groups(points, radius, [pad], [cells], b, work, splits=splits, max_per_thread=max_per_thread,
                           cache=cache, pool=pool)[0]
 
 
-def _groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b: Bounds, work: float, *,
+def _groups(points: wp.array, radius: wp.array, pads: list, cells: list, b: Bounds, work: float, *,
             splits: int | None, max_per_thread: int, like: Groups | None = None, cache: dict | None = None,
             pool: Pool | None = None) -> list[Groups]:
-    """:func:`build_groups` for a traversal expecting ``work`` candidates per query (with the first pad)."""
+    """:func:`build_groups` for traversals of ``cells`` (one per pad), the first expecting ``work`` candidates per
+    query."""
     per_thread = queries_per_thread(points.device, work, max_per_thread) if like is None else like.per_thread
     size, _ = launch_shape(points.device, points.shape[0], per_thread)
     # queries in Morton order for the dense traversal too: a warp's balls then lie together, and a source beyond the
@@ -440,6 +470,11 @@ def _groups(points: wp.array, radius: wp.array, pads: list, cells: Cells, b: Bou
 # them) then do not widen every query's box. Tier bounds: TIER_BASE x mean edge length, doubling, at most MAX_TIERS.
 TIER_BASE = 1.5
 MAX_TIERS = 4
+
+
+# The first edge-length tier of the ball kernels takes all edges when that widens its balls (radius + half the
+# longest edge) by at most this fraction.
+TIER_GROW = 0.02
 
 
 # Cell size of a busy ball traversal, as a fraction of the reach (CELL_FRACTION otherwise): longer rows, whose runs
@@ -465,7 +500,10 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     them all) and shares the query order and queries per thread of the first, the short edges', whose partial sums
     it adds to; a later traversal takes fewer splits when it expects fewer candidates (never more than the first).
     """
-    if strategy == "dense" or b.lmax <= TIER_BASE * b.lmean:
+    # the first tier takes every edge when that widens its balls by at most TIER_GROW (the other tiers' launches
+    # would cost more than the few extra candidates)
+    first_hi = max(TIER_BASE * b.lmean, 2.0 * ((1.0 + TIER_GROW) * (b.rmean + 0.5 * TIER_BASE * b.lmean) - b.rmean))
+    if strategy == "dense" or b.lmax <= first_hi:
         pad = 0.5 * b.lmax
         return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits,
                      max_per_thread=max_per_thread, cache=cache, pool=pool, fine=True, busy_cell=BUSY_BALL_CELL)]
@@ -480,26 +518,26 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     grid = [t for t, n in enumerate(sizes) if t == 0 or n is None or n * points.shape[0] > limit]
     slots = [grid.index(t) if t in grid else len(grid) for t in range(len(tiers))]
     dense = sum(n for t, n in enumerate(sizes) if t not in grid)
-    h, _ = grid_cell(b, b.rmean + 0.5 * min(tiers[0][1], b.lmax), mid.shape[0] if sizes[0] is None else sizes[0],
-                     points.device, max_per_thread, BUSY_BALL_CELL)
-    cells0 = build_tier_cells(mid, length, b, h, [hi for _, hi in tiers], slots, len(grid), pool)
-    order, first = cells0.order, cells0.first
-    nc = int(np.prod(tuple(cells0.dims)))
-    # the grid tiers' groups in one pair of launches: boxes of the same queries and cells, with each tier's pad
+    # the pads of the grid tiers, and their cells: the same fraction of each tier's own reach (a tier of long edges
+    # reaches farther, and fewer of its edges share a cell: finer cells would only add empty rows to its boxes)
     pads = [0.5 * min(tiers[t][1], b.lmax) for t in grid]
+    h0, _ = grid_cell(b, b.rmean + pads[0], mid.shape[0] if sizes[0] is None else sizes[0], points.device,
+                      max_per_thread, BUSY_BALL_CELL)
+    hs = [h0 * (b.rmean + p) / (b.rmean + pads[0]) for p in pads]
+    cells = build_tier_cells(mid, length, b, hs, [hi for _, hi in tiers], slots, pool)
     works = [dense_fraction(b, b.rmean + p, h) * (mid.shape[0] if sizes[t] is None else sizes[t])
-             for p, t in zip(pads, grid)]
-    groups = _groups(points, radius, pads, cells0, b, works[0], splits=splits, max_per_thread=max_per_thread,
-                     cache=cache, pool=pool)
+             for p, h, t in zip(pads, hs, grid)]
+    # the grid tiers' groups in one pair of launches: boxes of the same queries, each in its tier's grid and pad
+    groups = _groups(points, radius, pads, cells[:len(grid)], b, works[0], splits=splits,
+                     max_per_thread=max_per_thread, cache=cache, pool=pool)
     lead = groups[0]
     plans = []
     for g, grp in enumerate(groups):
         if g > 0 and splits is None:  # fewer splits for a tier that expects less work
             grp = replace(grp, splits=min(lead.splits, launch_shape(points.device, points.shape[0], lead.per_thread,
                                                                     works[g])[1]))
-        plans.append((Cells(order, first[g * nc:(g + 1) * nc + 1], cells0.origin, cells0.inv_h, cells0.dims), grp))
+        plans.append((cells[g], grp))
     if dense > 0:
-        cells = Cells(order, first[len(grid) * nc:len(grid) * nc + 2], cells0.origin, 0.0, wp.vec3i(1, 1, 1))
-        plans.append((cells, _groups(points, radius, [0.5 * b.lmax], cells, b, float(dense), splits=splits,
-                                     max_per_thread=max_per_thread, like=lead, cache=cache, pool=pool)[0]))
+        plans.append((cells[-1], _groups(points, radius, [0.5 * b.lmax], cells[-1:], b, float(dense), splits=splits,
+                                         max_per_thread=max_per_thread, like=lead, cache=cache, pool=pool)[0]))
     return plans

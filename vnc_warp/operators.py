@@ -85,7 +85,8 @@ def _host_bounds(mesh: Mesh, x: wp.array, radius_stats, lengths: bool = False) -
     if lengths:
         L = _interior_lengths(mesh)
         # float32 lengths on the device may round up past the host's: one part in 1e6 of slack
-        lmax, lmean = float(L[-1]) * (1.0 + 1e-6), float(L.mean(dtype=np.float64))
+        lmax = float(L[-1]) * (1.0 + 1e-6)
+        lmean = mesh._memo("interior_length_mean", lambda: float(L.mean(dtype=np.float64)))
     return _pairs.Bounds(lo, hi, float(radius_stats[0]), float(radius_stats[1]), lmax, lmean)
 
 
@@ -104,7 +105,9 @@ def _tier_sizes(mesh: Mesh):
     L = _interior_lengths(mesh)
     # float32 lengths on the device can differ in the last bit: count a tier generously (the count only decides
     # how a tier is traversed, never which edges are in it)
-    return lambda lo, hi: int(np.searchsorted(L, hi * (1 + 1e-6), "right") - np.searchsorted(L, lo * (1 - 1e-6), "right"))
+    # (the bounds as float32: a float64 one would convert all of L for every search)
+    return lambda lo, hi: int(np.searchsorted(L, np.float32(min(hi * (1 + 1e-6), 3e38)), "right")
+                              - np.searchsorted(L, np.float32(lo * (1 - 1e-6)), "right"))
 
 
 def _radius_stats(value):
