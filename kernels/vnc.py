@@ -817,6 +817,15 @@ def group_max(v: wp.vec3i, g: int) -> wp.vec3i:
     ...
 
 
+@wp.func
+def group_atomic_max(a: wp.array2d(dtype=wp.vec3i), t: int, g: int, v: wp.vec3i):
+    """``a[t, g] = max(a[t, g], v)`` componentwise for ``v`` >= 0 (> 0 in x), one atomic per warp's group
+    (:func:`group_max`)."""
+    m = group_max(v, g)
+    if m[0] > 0:
+        wp.atomic_max(a, t, g, m)
+
+
 @wp.kernel(enable_backward=False)
 def thread_extents(
     points: wp.array(dtype=wp.vec3),
@@ -840,7 +849,7 @@ def thread_extents(
     """Per thread of a traversal: the cells of the balls ``|x - p_k| <= radius[k] + margin + pads[t]`` of its
     ``per_thread`` consecutive sorted queries, for every traversal ``t`` (a row of ``low``: the edge-length tiers of
     the ball kernels, each over its own grid ``1 / inv_h[t]``, ``dims{t}``), gathered into its group's accumulators
-    (zeroed first) by atomic maxima, one per warp (:func:`group_max`): ``low`` holds ``BOX_OFFSET`` minus the
+    (zeroed first) by atomic maxima, one per warp (:func:`group_atomic_max`): ``low`` holds ``BOX_OFFSET`` minus the
     smallest cell, ``high`` one past the largest, ``most.x`` the cells of the largest box of one thread. One thread
     per entry: the reads of all queries are in flight together; :func:`group_boxes` ends."""
     u = wp.tid()
@@ -857,15 +866,9 @@ def thread_extents(
         ih, dims = tier_grid(t, inv_h, dims0, dims1, dims2, dims3)
         clo = cell_coord(lo - e, origin, ih, dims)
         chi = cell_coord(hi + e, origin, ih, dims)
-        a = group_max(wp.vec3i(BOX_OFFSET) - clo, g)
-        if a[0] > 0:
-            wp.atomic_max(low, t, g, a)
-        a = group_max(chi + wp.vec3i(1), g)
-        if a[0] > 0:
-            wp.atomic_max(high, t, g, a)
-        a = group_max(wp.vec3i(int(box_cells(clo, chi)), 0, 0), g)
-        if a[0] > 0:
-            wp.atomic_max(most, t, g, a)
+        group_atomic_max(low, t, g, wp.vec3i(BOX_OFFSET) - clo)
+        group_atomic_max(high, t, g, chi + wp.vec3i(1))
+        group_atomic_max(most, t, g, wp.vec3i(int(box_cells(clo, chi)), 0, 0))
 
 
 @wp.kernel(enable_backward=False)
