@@ -274,6 +274,12 @@ def build_cells(points: wp.array, b: Bounds, h: float | None, pool: Pool | None 
     return Cells(values[:n], first, origin, 1.0 / h, dims)
 
 
+def _grid_args(inv_h: list, dims: list) -> list:
+    """The per-grid arguments ``inv_h, dims0, .., dims3`` of :func:`kernels.vnc.tier_grid`'s kernels for 1 to 4
+    grids (unused slots padded)."""
+    return [wp.vec4(*(list(inv_h) + [0.0] * (4 - len(inv_h)))), *(list(dims) + [dims[0]] * (4 - len(dims)))]
+
+
 def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, hs: list, tier_hi: list, slots: list,
                      pool: Pool | None = None) -> list[Cells]:
     """One sort of the edges ``points`` (midpoints) for every length tier (``tier_hi``: the tiers' upper bounds,
@@ -297,11 +303,10 @@ def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, hs: list, ti
     slot = [int(v) for v in slots] + [len(hs)] * (4 - len(slots))
     origin = wp.vec3(*b.lo)
     dims = [wp.vec3i(*[int(v) for v in d]) for d in dims_np]
-    inv_h = [1.0 / h for h in hs] + [0.0] * (4 - len(hs))
     bits, fine_bits = _fine_bits(buckets, True)
     wp.launch(_k.tier_cell_keys, dim=n,
-              inputs=[points, origin, wp.vec4(*inv_h), *(dims + [dims[0]] * (4 - len(dims))),
-                      wp.vec4i(*[int(v) for v in base[:4]] + [0] * (4 - min(len(base), 4))), length, wp.vec4(*hi),
+              inputs=[points, origin, *_grid_args([1.0 / h for h in hs], dims),
+                      wp.vec4i(*[int(v) for v in base[:len(hs)]] + [0] * (4 - len(hs))), length, wp.vec4(*hi),
                       wp.vec4i(*slot), len(hs), buckets - 1, fine_bits],
               outputs=[keys, values, counts], device=device, record_tape=False)
     wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
@@ -422,11 +427,10 @@ def build_groups(points: wp.array, radius: wp.array, pads: list, cells: list, b:
             raise ValueError("the traversals grouped together share the origin of their grids")
         threads = -(-count // per_thread)
         acc = _zeros(pool, device, (3, len(pads), num_groups), wp.vec3i)  # lowest, highest cells, most cells
-        inv_h = [c.inv_h for c in cells] + [0.0] * (4 - len(cells))
-        dims = [c.dims for c in cells] + [cells[0].dims] * (4 - len(cells))
         wp.launch(_k.thread_extents, dim=threads,
                   inputs=[points, order, radius, margin, count, per_thread, size // per_thread, cells[0].origin,
-                          wp.vec4(*inv_h), *dims, wp.vec4(*(pads + [0.0] * (4 - len(pads))))],
+                          *_grid_args([c.inv_h for c in cells], [c.dims for c in cells]),
+                          wp.vec4(*(pads + [0.0] * (4 - len(pads))))],
                   outputs=[acc[0], acc[1], acc[2]], device=device, record_tape=False)
         wp.launch(_k.group_boxes, dim=(len(pads), num_groups),
                   inputs=[acc[0], acc[1], acc[2], SPREAD if size > per_thread else 1.0e30], outputs=[box_lo, box_hi],
