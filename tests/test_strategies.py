@@ -107,14 +107,16 @@ def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
 
 
 @pytest.mark.parametrize("form", ["unit", "half"])
-@pytest.mark.parametrize("chunks", [False, True], ids=["chords", "chunks"])
+@pytest.mark.parametrize("runs", ["chords", "chunks", "chunks-no-vote"])
 @pytest.mark.parametrize("prefilter", [False, True], ids=["all", "prefilter"])
-def test_every_ball_kernel_variant(form, chunks, prefilter, cuda_launch_shape, monkeypatch, device):
+def test_every_ball_kernel_variant(form, runs, prefilter, cuda_launch_shape, monkeypatch, device):
     """Each variant of the ball kernel (``bench/tune.py`` times them all; ``ball_variant`` picks one per traversal):
-    edge records, chunked runs, prefilter, 4 queries per thread over 3 splits; Eq. (2) with and without the Gaussian
-    equals the float64 dense reference from a ball of one edge length (no run inside it) to the whole mesh (every run
-    inside), through the grid (edge-length tiers: scan-like long edges) and densely."""
-    monkeypatch.setattr(_k, "BALL_VARIANT", {"prefilter": prefilter, "form": form, "chunks": chunks})
+    edge records, chunked runs (with and without the warp vote that sends a run some threads of a CUDA warp need the
+    chords of to all of them: kernels.vnc.VOTE), prefilter, 4 queries per thread over 3 splits; Eq. (2) with and
+    without the Gaussian equals the float64 dense reference from a ball of one edge length (no run inside it) to the
+    whole mesh (every run inside), through the grid (edge-length tiers: scan-like long edges) and densely."""
+    monkeypatch.setattr(_k, "BALL_VARIANT", {"prefilter": prefilter, "form": form, "chunks": runs != "chords"})
+    monkeypatch.setattr(_k, "VOTE", runs != "chunks-no-vote")
     mesh = _bumpy_sphere(subdiv=3, seed=3)
     v = mesh.vertices.copy()
     v[::7] *= 1.25  # spikes: long edges, several length tiers

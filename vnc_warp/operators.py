@@ -249,7 +249,7 @@ def _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy:
     pos, val = _soft_sources(cells, f, device, pool)
     parts = _partials(groups, device, wp.float32, wp.float32, wp.vec3, pool=pool)
     wp.launch(_k.soft_cells_kernel(groups.per_thread), dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
-              outputs=parts, device=device, record_tape=False)
+              outputs=parts, device=device, record_tape=False, block_dim=_k.CELLS_BLOCK)
     wp.launch(_k.reduce_sums, dim=V, inputs=[groups.order, *parts], outputs=outputs, device=device,
               record_tape=False)
     num, den, nsum, H, n = outputs
@@ -431,17 +431,20 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     variant = variants[0]
     # every traversal reads the edges in one sorted order (ball_plans)
     seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool, form=variant["form"])
-    nchunks = -(-E // int(_k.CHUNK)) if any(v["chunks"] for v in variants) else 0
+    chunked = [cells for (cells, _), v in zip(plans, variants) if v["chunks"]]
+    nchunks = -(-E // int(_k.CHUNK)) if chunked else 0
     chunk_lo, chunk_hi = (pool.empty(nchunks, wp.vec3) for _ in range(2))
     if nchunks:
-        # few threads, each a serial loop: blocks of one warp spread them over every multiprocessor
-        wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, int(variant["form"] == "unit")],
+        # the boxes of the runs the chunked traversals read, from the first record of the first of them (all, or
+        # only the last ones for a dense bucket of long edges); few threads, each a serial loop: blocks of one warp
+        # spread them over every multiprocessor
+        wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, int(variant["form"] == "unit"), chunked[0].first],
                   outputs=[chunk_lo, chunk_hi], device=device, block_dim=32)
     for i, (cells, grp) in enumerate(plans):
         kernel = _k.ball_cells_kernel(grp.per_thread, **variants[i])
         wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, chunk_lo,
                                                chunk_hi, grp.splits, int(i > 0)],
-                  outputs=parts, device=device)
+                  outputs=parts, device=device, block_dim=_k.CELLS_BLOCK)
     wp.launch(_k.reduce_sums, dim=P, inputs=[groups.order, *parts], outputs=outputs, device=device)
     return outputs
 
