@@ -44,6 +44,10 @@ _DENSE_FRACTION = 0.9
 _CUDA_SMALL_PAIRS = 1 << 22
 # Grid cell size as a fraction of the typical query radius (see cell_size).
 CELL_FRACTION = 0.5
+# A grid has at most this many cells per source (cell_size): its first-source table is O(sources). The cap sets the
+# cells of small balls on large meshes (at 800k vertices and 2 mean edge lengths: 2.2 edge lengths instead of half
+# the radius); 8 and 16 were no better on an H200 (800k 2 l VNC-hard 3 % faster at 8, 200k 2 l 13 % slower).
+CELLS_PER_SOURCE = 4
 # How many ways a box's rows are shared on CUDA; None: enough to fill the device (launch_shape).
 SPLITS = None
 
@@ -182,7 +186,7 @@ def cell_size(b: Bounds, reach: float, sources: int, device: wp.Device, fraction
     ext = np.maximum(b.hi - b.lo, 0.0)
     scale = max(float(ext.max()), float(np.abs(np.concatenate([b.lo, b.hi])).max()), 1e-30)
     h = max((CELL_FRACTION if fraction is None else fraction) * reach, 1e-6 * scale)
-    cap = max(4 * sources, 4096)
+    cap = max(CELLS_PER_SOURCE * sources, 4096)
     for _ in range(64):
         n = float(np.prod(_grid_dims(ext, h).astype(np.float64)))
         if n <= cap:
