@@ -49,6 +49,8 @@ BALL_KERNELS = {
     "half_chunks": {"prefilter": None, "form": "half", "chunks": True},
     "plain": {"prefilter": False, "form": None, "chunks": None},
     "prefilter": {"prefilter": True, "form": None, "chunks": None},
+    "half_prefilter": {"prefilter": True, "form": "half", "chunks": None},
+    "unit_plain": {"prefilter": False, "form": "unit", "chunks": None},
 }
 
 

@@ -28,6 +28,8 @@ cell's along a Morton curve, so that a run of ``CHUNK`` consecutive records is a
 (:func:`chunk_boxes`) can be tested against a thread's balls as a whole (``ball_cells_kernel(chunks=True)``).
 """
 
+import math
+
 import warp as wp
 
 
@@ -803,6 +805,74 @@ def warp_any(p: int) -> int:
     ...
 
 
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return 32;
+#else
+    return 1;
+#endif
+"""
+)
+def warp_lanes() -> int:
+    """Threads per warp: 32 on CUDA, 1 on the CPU (a thread is its own warp)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return (int)(threadIdx.x & 31);
+#else
+    return 0;
+#endif
+"""
+)
+def lane_id() -> int:
+    """The calling thread's lane in its warp (0 on the CPU)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return wp::vec2i(__shfl_sync(0xffffffffu, v[0], src), __shfl_sync(0xffffffffu, v[1], src));
+#else
+    return v;
+#endif
+"""
+)
+def warp_shfl2(v: wp.vec2i, src: int) -> wp.vec2i:
+    """``v`` of lane ``src`` of the calling thread's CUDA warp, all 32 of whose threads must call it together;
+    ``v`` itself on the CPU."""
+    ...
+
+
+@wp.func
+def walk_span(k: int, row: int, step: int, nrows: int, shared: bool, held: wp.vec2i, lo: wp.vec3i, hi: wp.vec3i,
+              dims: wp.vec3i, first: wp.array(dtype=int)):
+    """``(span, held)``: the sorted-source range of row ``row`` of the box ``lo..hi``, the ``k``-th a thread walks
+    (rows ``row, row + step, ..`` below ``nrows``), and what the thread holds for :func:`walk_span`'s next call.
+
+    Where the whole warp walks one shared box (``shared``: a CUDA warp is one group, all of whose threads call this
+    together), its threads read the ranges of its next 32 rows at once, one each, every 32nd row, and pass them
+    round (:func:`warp_shfl2`), instead of one dependent read after another per row; otherwise the thread reads the
+    range of each row itself."""
+    span = wp.vec2i(0, 0)
+    mine = held
+    if shared:
+        j = k % warp_lanes()
+        if j == 0:
+            r = row + lane_id() * step
+            mine = wp.vec2i(0, 0)
+            if r < nrows:
+                mine = row_span(r, lo, hi, dims, first)
+        span = warp_shfl2(mine, j)
+    else:
+        span = row_span(row, lo, hi, dims, first)
+    return span, mine
+
+
 # Offset of the cell coordinates gathered by atomic maxima in thread_extents: a group's smallest cell c is kept as
 # BOX_OFFSET - c, so that every accumulator starts from zero
 BOX_OFFSET = wp.constant(1 << 30)
@@ -1028,9 +1098,12 @@ def soft_cells_kernel(qb: int):
         """
         s, u = wp.tid()
         t0 = u * qb
-        if t0 >= count:
-            return
         g = t0 // size
+        # one query per thread: the threads past the last query of a group that walks a shared box walk it too
+        # (walk_span)
+        shared = wp.static(qb == 1) and box_lo[g][0] >= 0
+        if t0 >= count and not shared:
+            return
         emin = -kappa * kappa * (0.5 * LOG2E)
         px = vq()
         py = vq()
@@ -1063,8 +1136,16 @@ def soft_cells_kernel(qb: int):
         az = vq()
         nrows = box_rows(lo, hi)
         steps = row_walk(nrows, s, ns)
+        held = wp.vec2i(0, 0)
+        walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            span = row_share(row_span(row, lo, hi, dims, first), s, ns, steps[1])
+            whole = wp.vec2i(0, 0)
+            if wp.static(qb == 1):
+                whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+                walked += 1
+            else:
+                whole = row_span(row, lo, hi, dims, first)
+            span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
                 ep = load4(pos, i)
                 ev = load4(val, i)
@@ -1104,10 +1185,11 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
 
     ``form``: the edge records the kernel reads (:func:`pack_ball_sources`), "unit" (midpoint, unit direction, the
     roots in length units) or "half" (midpoint, half-vector, the roots in ``[-1, 1]``).
-    The chord is evaluated behind the one test that the edge's line meets the ball (on an H200 25-35 % faster from 4
-    mean edge lengths up than :func:`chord` and a test of its length for every candidate, and no slower below;
-    reading two edges per iteration was no faster: ``docs/results/tune_h200_kernels.json``). ``prefilter`` first
-    rejects an edge whose midpoint is beyond the radius plus its half length (``tune_h200_prefilter.json``).
+    The chord is the roots clipped to the edge with no branch on whether the edge's line meets the ball (a line that
+    misses gets an empty chord from the same clipping): on an H200 1-8 % faster than a branch on the root at 2-8
+    mean edge lengths (nefertiti, koala, their subdivisions, armadillo, spot); reading two edges per iteration was
+    no faster (``docs/results/tune_h200_kernels.json``). ``prefilter``
+    first rejects an edge whose midpoint is beyond the radius plus its half length (see :func:`ball_variant`).
     ``chunks``: the edges are read in runs of at most :data:`CHUNK` sorted records, each tested as a whole against
     the thread's balls first (:func:`chunk_boxes`): a run beyond every ball is skipped, one inside every ball adds
     its edges' whole lengths with no chord (an edge with both ends in a ball lies in it). The threads of a CUDA warp
@@ -1160,9 +1242,12 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         """
         s, u = wp.tid()
         t0 = u * qb
-        if t0 >= count:
-            return
         grp = t0 // size
+        # one query per thread: the threads past the last query of a group that walks a shared box walk it too
+        # (walk_span)
+        shared = wp.static(qb == 1) and box_lo[grp][0] >= 0
+        if t0 >= count and not shared:
+            return
         px = vq()
         py = vq()
         pz = vq()
@@ -1197,8 +1282,16 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         az = vq()
         nrows = box_rows(lo, hi)
         steps = row_walk(nrows, s, splits)
+        held = wp.vec2i(0, 0)
+        walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            span = row_share(row_span(row, lo, hi, dims, first), s, splits, steps[1])
+            whole = wp.vec2i(0, 0)
+            if wp.static(qb == 1):
+                whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+                walked += 1
+            else:
+                whole = row_span(row, lo, hi, dims, first)
+            span = row_share(whole, s, splits, steps[1])
             i = span[0]
             while i < span[1]:
                 j = span[1]
@@ -1280,23 +1373,24 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                                     disc = ch * ch - (cc - r2[q])
                                 else:
                                     disc = ch * ch - hh * (cc - r2[q])
-                                if disc > 0.0:
-                                    sq = wp.sqrt(disc)
-                                    if wp.static(unit):
-                                        # the chord min(sq - ch, L/2) - max(-sq - ch, -L/2), without negations
-                                        l_in = wp.max(wp.min(sq - ch, half) + wp.min(sq + ch, half), 0.0)
-                                    else:
-                                        # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both
-                                        # ends inside gets its whole length, a degenerate one (1 / hh = 0) nothing
-                                        u1 = wp.max((-ch - sq) * sm[3], -1.0)
-                                        u2 = wp.min((-ch + sq) * sm[3], 1.0)
-                                        l_in = wp.max(u2 - u1, 0.0) * half
-                                    w = l_in * exp2(cc * gl[q])
-                                    an[q] += w * ev[0]
-                                    ad[q] += w
-                                    ax[q] += w * ev[1]
-                                    ay[q] += w * ev[2]
-                                    az[q] += w * ev[3]
+                                # no branch on the root: an edge whose line misses the ball (disc <= 0) gets an empty
+                                # chord from the same clipping
+                                sq = wp.sqrt(wp.max(disc, 0.0))
+                                if wp.static(unit):
+                                    # the chord min(sq - ch, L/2) - max(-sq - ch, -L/2), without negations
+                                    l_in = wp.max(wp.min(sq - ch, half) + wp.min(sq + ch, half), 0.0)
+                                else:
+                                    # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both
+                                    # ends inside gets its whole length, a degenerate one (1 / hh = 0) nothing
+                                    u1 = wp.max((-ch - sq) * sm[3], -1.0)
+                                    u2 = wp.min((-ch + sq) * sm[3], 1.0)
+                                    l_in = wp.max(u2 - u1, 0.0) * half
+                                w = l_in * exp2(cc * gl[q])
+                                an[q] += w * ev[0]
+                                ad[q] += w
+                                ax[q] += w * ev[1]
+                                ay[q] += w * ev[2]
+                                az[q] += w * ev[3]
                 i = j
         for q in range(qb):
             if t0 + q < count:
@@ -1359,22 +1453,44 @@ CHUNK_REACH = 6.0
 VOTE = True
 
 
-def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = False) -> dict:
+def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = False, queries: int = 0,
+                 cuda: bool = True) -> dict:
     """The :func:`ball_cells_kernel` options of one launch of a traversal (those of :data:`BALL_VARIANT` left None),
-    measured on an H200 (``bench/tune.py``; ``docs/results/tune_h200_chunks.json``): the midpoint prefilter for grid
-    traversals (3-5 % faster; 13 % slower in a dense one, where every candidate is near); "half" records for one
-    query per thread (2-8 % faster), "unit" for several (4-6 %); chunked runs for balls of at least
-    :data:`CHUNK_REACH` mean edge lengths (``reach``, 6-14 % faster at 8-16) and for every launch over one cell
-    (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long edges' one of a grid traversal,
-    most of whose runs are far from a small ball)."""
+    measured on an H200 (``bench/tune.py``; the prefilter and records: ``docs/results/tune_h200_prefilter_form.json``):
+
+    * the midpoint prefilter, with "half" records, for a grid traversal on the CPU (one thread skips the chord of
+      every far edge), and on CUDA for small balls over many ``queries``: below :func:`prefilter_reach` mean edge
+      lengths (``reach``). There it skips the chord of an edge far from every ball of a warp, at the cost of a
+      branch in the loop: 5-7 % faster at 2-6 mean edge lengths on 800k vertices, 2-5 % at 2-4 on 200k, but 5-20 %
+      slower from 3-4 mean edge lengths up on 50k and from 8 up on 800k;
+    * otherwise no prefilter and "unit" records (roots in length units: fewer operations per chord; 2-10 % faster
+      than "half" records there);
+    * chunked runs for balls of at least :data:`CHUNK_REACH` mean edge lengths (6-14 % faster at 8-16) and for
+      every launch over one cell (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long
+      edges' one of a grid traversal, most of whose runs are far from a small ball).
+    """
     v = dict(BALL_VARIANT)
     if v["prefilter"] is None:
-        v["prefilter"] = strategy == "grid"
+        v["prefilter"] = strategy == "grid" and (not cuda or reach < prefilter_reach(queries))
     if v["form"] is None:
-        v["form"] = "unit" if per_thread > 1 else "half"
+        v["form"] = "half" if per_thread == 1 and v["prefilter"] else "unit"
     if v["chunks"] is None:
         v["chunks"] = strategy == "dense" or one_cell or reach >= CHUNK_REACH
     return v
+
+
+# The prefilter pays for balls of less than PREFILTER_REACH mean edge lengths at PREFILTER_QUERIES queries, and for
+# balls larger by one mean edge length per doubling of the queries (measured on an H200 with nefertiti, koala and
+# their subdivisions to 200k and 800k vertices, armadillo and spot: the crossover was 2-4 at 50k, 4-6 at 200k, 6-8 at
+# 800k)
+PREFILTER_REACH = 3.0
+PREFILTER_QUERIES = 50000
+
+
+def prefilter_reach(queries: int) -> float:
+    """The ball radius, in mean edge lengths, below which a grid traversal of ``queries`` balls takes the prefilter
+    (:func:`ball_variant`)."""
+    return PREFILTER_REACH + math.log2(max(queries, 1) / PREFILTER_QUERIES)
 
 
 @wp.kernel(enable_backward=False)

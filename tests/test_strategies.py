@@ -131,6 +131,31 @@ def test_every_ball_kernel_variant(form, runs, prefilter, cuda_launch_shape, mon
                                            err_msg=f"{strategy}, tau={tau:.3g}, kappa={kappa}")
 
 
+def test_ball_variant_rule():
+    """The kernel variant each ball traversal takes (``kernels.vnc.ball_variant``): the midpoint prefilter, with
+    "half" records, for every grid traversal on the CPU and on CUDA only below ``prefilter_reach(queries)`` mean edge
+    lengths, a crossover one mean edge length larger per doubling of the queries; never in a dense traversal;
+    "unit" records otherwise and for several queries per thread; runs of records from CHUNK_REACH and over one cell."""
+    v = _k.ball_variant
+    for reach in (1.0, 2.0, 8.0, 40.0):
+        assert v("grid", 1, reach, queries=10, cuda=False)["prefilter"]
+        assert v("grid", 1, reach, queries=10, cuda=False)["form"] == "half"
+        assert not v("dense", 1, reach, queries=10**7)["prefilter"]
+    assert _k.prefilter_reach(100_000) == pytest.approx(_k.prefilter_reach(50_000) + 1.0)
+    assert v("grid", 1, 2.0, queries=800_000)["prefilter"]
+    assert v("grid", 1, 6.0, queries=800_000)["prefilter"]
+    assert not v("grid", 1, 8.0, queries=800_000)["prefilter"]
+    assert v("grid", 1, 2.0, queries=50_000)["prefilter"]
+    assert not v("grid", 1, 4.0, queries=50_000)["prefilter"]
+    for queries, reach in ((800_000, 2.0), (800_000, 8.0), (50_000, 4.0)):
+        for per_thread in (1, 4):
+            chosen = v("grid", per_thread, reach, queries=queries)
+            assert chosen["form"] == ("half" if per_thread == 1 and chosen["prefilter"] else "unit")
+    assert not v("grid", 1, 0.99 * _k.CHUNK_REACH, queries=50_000)["chunks"]
+    assert v("grid", 1, _k.CHUNK_REACH, queries=50_000)["chunks"]
+    assert v("grid", 1, 2.0, one_cell=True, queries=50_000)["chunks"]
+
+
 def _numpy_group_boxes(x, radius, order, size, per_thread, margin, pad, origin, inv_h, dims):
     """float32 reference of build_groups' boxes: per group of ``size`` sorted queries, the cells reached by its threads'
     balls (``per_thread`` queries each), marked ``lo.x = -1`` when that box holds more than SPREAD times the cells of

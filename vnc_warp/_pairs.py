@@ -285,11 +285,11 @@ def _grid_args(inv_h: list, dims: list) -> list:
 
 
 def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, hs: list, tier_hi: list, slots: list,
-                     pool: Pool | None = None) -> list[Cells]:
+                     pool: Pool | None = None, fine: bool = True) -> list[Cells]:
     """One sort of the edges ``points`` (midpoints) for every length tier (``tier_hi``: the tiers' upper bounds,
     ascending, the last infinite; ``slots[t]``: tier ``t``'s grid, ``len(hs)`` for the bucket tested densely;
-    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve (:data:`FINE_BITS`). Grid ``g`` has cells
-    of size ``hs[g]`` over ``b`` (coarser for the longer edges, whose balls reach farther). Returns the
+    :func:`kernels.vnc.tier_cell_keys`), each bucket along a Morton curve when ``fine`` (:data:`FINE_BITS`). Grid
+    ``g`` has cells of size ``hs[g]`` over ``b`` (coarser for the longer edges, whose balls reach farther). Returns the
     :class:`Cells` of every grid, then (when some tier has no grid) the one cell of the dense bucket, all sharing one
     ``order``."""
     device = points.device
@@ -307,7 +307,7 @@ def build_tier_cells(points: wp.array, length: wp.array, b: Bounds, hs: list, ti
     slot = [int(v) for v in slots] + [len(hs)] * (4 - len(slots))
     origin = wp.vec3(*b.lo)
     dims = [wp.vec3i(*[int(v) for v in d]) for d in dims_np]
-    bits, fine_bits = _fine_bits(buckets, True)
+    bits, fine_bits = _fine_bits(buckets, fine)
     wp.launch(_k.tier_cell_keys, dim=n,
               inputs=[points, origin, *_grid_args([1.0 / h for h in hs], dims),
                       wp.vec4i(*[int(v) for v in base[:len(hs)]] + [0] * (4 - len(hs))), length, wp.vec4(*hi),
@@ -476,8 +476,11 @@ def _groups(points: wp.array, radius: wp.array, pads: list, cells: list, b: Boun
 # Edge-length tiers of the ball (Eq. 1-2) kernels: an edge reaches a ball from as far as half its length beyond the
 # radius, so edges are traversed in tiers of similar length, each with its own pad; a few long edges (scans have
 # them) then do not widen every query's box. Tier bounds: TIER_BASE x mean edge length, doubling, at most MAX_TIERS.
+# Three, not four: a tier of a fraction of a percent of the edges still costs a launch that reads every query and
+# walks its box's rows (at 2 mean edge lengths on an H200: nefertiti subdivided to 800k vertices 2.57 -> 2.51 ms,
+# koala subdivided to 200k 0.87 -> 0.82 ms; the same on the 50k meshes, whose longest edges go to a dense tail).
 TIER_BASE = 1.5
-MAX_TIERS = 4
+MAX_TIERS = 3
 
 
 # The first edge-length tier of the ball kernels takes all edges when that widens its balls (radius + half the
@@ -497,6 +500,17 @@ BUSY_BALL_CELL = 1.0
 DENSE_TIER_PAIRS = {"cuda": 1 << 26, "cpu": 1 << 16}
 
 
+def ball_reach(b: Bounds) -> float:
+    """The mean ball radius of a ball traversal in mean edge lengths (:func:`kernels.vnc.ball_variant`)."""
+    return b.rmean / max(b.lmean, 1e-30)
+
+
+def chunked(strategy: str, b: Bounds, one_cell: bool) -> bool:
+    """Whether a ball traversal (``strategy`` "grid" or "dense", over ``one_cell`` or more) tests runs of sorted
+    edges as a whole (:func:`kernels.vnc.ball_variant`)."""
+    return bool(_k.ball_variant(strategy, 1, ball_reach(b), one_cell)["chunks"])
+
+
 def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.array, b: Bounds, strategy: str,
                *, splits: int | None = None, max_per_thread: int = 1, cache: dict | None = None,
                pool: Pool | None = None, tier_size=None) -> list[tuple[Cells, Groups]]:
@@ -513,8 +527,10 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     first_hi = max(TIER_BASE * b.lmean, 2.0 * ((1.0 + TIER_GROW) * (b.rmean + 0.5 * TIER_BASE * b.lmean) - b.rmean))
     if strategy == "dense" or b.lmax <= first_hi:
         pad = 0.5 * b.lmax
+        # (the order only speeds the chunked kernel up: a grid of one cell, a tiny mesh's, may read unordered runs)
+        fine = chunked(strategy, b, strategy == "dense")
         return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits,
-                     max_per_thread=max_per_thread, cache=cache, pool=pool, fine=True, busy_cell=BUSY_BALL_CELL)]
+                     max_per_thread=max_per_thread, cache=cache, pool=pool, fine=fine, busy_cell=BUSY_BALL_CELL)]
     bounds_ = [-1.0]
     while len(bounds_) < MAX_TIERS and TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1) < b.lmax:
         bounds_.append(TIER_BASE * b.lmean * 2 ** (len(bounds_) - 1))
@@ -532,7 +548,10 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     h0, _ = grid_cell(b, b.rmean + pads[0], mid.shape[0] if sizes[0] is None else sizes[0], points.device,
                       max_per_thread, BUSY_BALL_CELL)
     hs = [h0 * (b.rmean + p) / (b.rmean + pads[0]) for p in pads]
-    cells = build_tier_cells(mid, length, b, hs, [hi for _, hi in tiers], slots, pool)
+    # the edges of a cell along a Morton curve only for traversals that test runs of them as a whole
+    ext = np.maximum(b.hi - b.lo, 0.0)
+    fine = dense > 0 or any(chunked(strategy, b, tuple(_grid_dims(ext, h)) == (1, 1, 1)) for h in hs)
+    cells = build_tier_cells(mid, length, b, hs, [hi for _, hi in tiers], slots, pool, fine)
     works = [dense_fraction(b, b.rmean + p, h) * (mid.shape[0] if sizes[t] is None else sizes[t])
              for p, h, t in zip(pads, hs, grid)]
     # the grid tiers' groups in one pair of launches: boxes of the same queries, each in its tier's grid and pad

@@ -426,8 +426,9 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     groups = plans[0][1]
     ns = groups.splits
     parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
-    reach = b.rmean / max(b.lmean, 1e-30)
-    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1)) for c, _ in plans]
+    reach = _pairs.ball_reach(b)
+    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1), P, device.is_cuda)
+                for c, _ in plans]
     variant = variants[0]
     # every traversal reads the edges in one sorted order (ball_plans)
     seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool, form=variant["form"])
