@@ -1139,12 +1139,8 @@ def soft_cells_kernel(qb: int):
         held = wp.vec2i(0, 0)
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            whole = wp.vec2i(0, 0)
-            if wp.static(qb == 1):
-                whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
-                walked += 1
-            else:
-                whole = row_span(row, lo, hi, dims, first)
+            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+            walked += 1
             span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
                 ep = load4(pos, i)
@@ -1188,8 +1184,8 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
     The chord is the roots clipped to the edge with no branch on whether the edge's line meets the ball (a line that
     misses gets an empty chord from the same clipping): on an H200 1-8 % faster than a branch on the root at 2-8
     mean edge lengths (nefertiti, koala, their subdivisions, armadillo, spot); reading two edges per iteration was
-    no faster (``docs/results/tune_h200_kernels.json``). ``prefilter``
-    first rejects an edge whose midpoint is beyond the radius plus its half length (see :func:`ball_variant`).
+    no faster (``docs/results/tune_h200_kernels.json``). ``prefilter`` first rejects an edge whose midpoint is beyond
+    the radius plus its half length (see :func:`ball_variant`).
     ``chunks``: the edges are read in runs of at most :data:`CHUNK` sorted records, each tested as a whole against
     the thread's balls first (:func:`chunk_boxes`): a run beyond every ball is skipped, one inside every ball adds
     its edges' whole lengths with no chord (an edge with both ends in a ball lies in it). The threads of a CUDA warp
@@ -1285,12 +1281,8 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         held = wp.vec2i(0, 0)
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            whole = wp.vec2i(0, 0)
-            if wp.static(qb == 1):
-                whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
-                walked += 1
-            else:
-                whole = row_span(row, lo, hi, dims, first)
+            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+            walked += 1
             span = row_share(whole, s, splits, steps[1])
             i = span[0]
             while i < span[1]:
