@@ -21,14 +21,15 @@ kernels an all-pairs (dense) traversal. The rows of a box are split over ``ns`` 
 dimension) for occupancy (a box of many rows by whole rows in turn, a box of few rows by parts of every row:
 :func:`row_walk`, :func:`row_share`); each thread
 writes its partial sums to row ``s`` of a ``(ns, Q)`` array that a reduction kernel adds up in a fixed order, so
-results are deterministic. The forward VNC-soft kernel holds ``QB`` queries per thread.
+results are deterministic. The forward VNC-soft kernel holds ``QB`` queries per thread. The forward kernels of one
+query per thread read of each row only the cells some ball of the group reaches (:func:`walk_span`): a box is the
+bounding box of its balls, and its rows' ends are mostly beyond all of them.
 
 The ball kernels (Eqs. 1-2) read edges sorted once for all their edge-length tiers (:func:`tier_cell_keys`), each
 cell's along a Morton curve, so that a run of ``CHUNK`` consecutive records is a small patch whose box
 (:func:`chunk_boxes`) can be tested against a thread's balls as a whole (``ball_cells_kernel(chunks=True)``).
 """
 
-import math
 
 import warp as wp
 
@@ -848,29 +849,130 @@ def warp_shfl2(v: wp.vec2i, src: int) -> wp.vec2i:
     ...
 
 
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 800)
+    return __reduce_min_sync(0xffffffffu, v);
+#elif defined(__CUDA_ARCH__)
+    int m = v;
+    for (int o = 16; o > 0; o >>= 1)
+        m = min(m, __shfl_xor_sync(0xffffffffu, m, o));
+    return m;
+#else
+    return v;
+#endif
+"""
+)
+def warp_min(v: int) -> int:
+    """Minimum of ``v`` over the 32 threads of the calling thread's CUDA warp, all of which must call it together;
+    ``v`` itself on the CPU."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 800)
+    return __reduce_max_sync(0xffffffffu, v);
+#elif defined(__CUDA_ARCH__)
+    int m = v;
+    for (int o = 16; o > 0; o >>= 1)
+        m = max(m, __shfl_xor_sync(0xffffffffu, m, o));
+    return m;
+#else
+    return v;
+#endif
+"""
+)
+def warp_max(v: int) -> int:
+    """Maximum of ``v`` over the 32 threads of the calling thread's CUDA warp, all of which must call it together;
+    ``v`` itself on the CPU."""
+    ...
+
+
+@wp.func
+def thread_ball(plo: wp.vec3, phi: wp.vec3, origin: wp.vec3, inv_h: float):
+    """The ball ``plo..phi`` of a thread with one query (its centre +- radius, empty where ``plo > phi``: a thread
+    with no query) in cell units of a grid from ``origin``: ``(centre, radius)``, radius < 0 when empty."""
+    c = (0.5 * (plo + phi) - origin) * inv_h
+    return wp.vec4(c[0], c[1], c[2], 0.5 * (phi[0] - plo[0]) * inv_h)
+
+
+@wp.func
+def ball_row_cells(row: int, lo: wp.vec3i, hi: wp.vec3i, ball: wp.vec4):
+    """The cells ``(first, last)`` of row ``row`` of the box ``lo..hi`` (its ``(y, z)``: see :func:`row_span`) that
+    the ball ``ball`` (:func:`thread_ball`) reaches, within ``lo.x..hi.x``; ``first > last`` where it misses the row.
+
+    A source in cell ``(x, y, z)`` lies in ``[x, x + 1) x [y, y + 1) x [z, z + 1)`` (cell units): within the ball,
+    its ``x`` is within ``w = sqrt(R^2 - dy^2 - dz^2)`` of the centre's, ``dy, dz`` the distances from the centre to
+    the row's slab."""
+    ny = hi[1] - lo[1] + 1
+    y = float(lo[1] + row % ny)
+    z = float(lo[2] + row // ny)
+    dy = wp.max(wp.max(y - ball[1], ball[1] - (y + 1.0)), 0.0)
+    dz = wp.max(wp.max(z - ball[2], ball[2] - (z + 1.0)), 0.0)
+    w2 = ball[3] * ball[3] - dy * dy - dz * dz
+    out = wp.vec2i(hi[0] + 1, lo[0] - 1)
+    if ball[3] >= 0.0 and w2 >= 0.0:
+        w = wp.sqrt(w2)
+        out = wp.vec2i(int(wp.floor(wp.clamp(ball[0] - w, float(lo[0]), float(hi[0] + 1)))),
+                       int(wp.floor(wp.clamp(ball[0] + w, float(lo[0] - 1), float(hi[0])))))
+    return out
+
+
+@wp.func
+def cells_span(row: int, cells: wp.vec2i, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
+    """Sorted-source range ``[begin, end)`` of the cells ``cells[0]..cells[1]`` of row ``row`` of the box (empty
+    where ``cells[0] > cells[1]``)."""
+    ny = hi[1] - lo[1] + 1
+    base = dims[0] * (lo[1] + row % ny + dims[1] * (lo[2] + row // ny))
+    out = wp.vec2i(0, 0)
+    if cells[0] <= cells[1]:
+        out = wp.vec2i(first[base + cells[0]], first[base + cells[1] + 1])
+    return out
+
+
 @wp.func
 def walk_span(k: int, row: int, step: int, nrows: int, shared: bool, held: wp.vec2i, lo: wp.vec3i, hi: wp.vec3i,
-              dims: wp.vec3i, first: wp.array(dtype=int)):
+              dims: wp.vec3i, first: wp.array(dtype=int), cull: bool, ball: wp.vec4):
     """``(span, held)``: the sorted-source range of row ``row`` of the box ``lo..hi``, the ``k``-th a thread walks
     (rows ``row, row + step, ..`` below ``nrows``), and what the thread holds for :func:`walk_span`'s next call.
 
-    Where the whole warp walks one shared box (``shared``: a CUDA warp is one group, all of whose threads call this
-    together), its threads read the ranges of its next 32 rows at once, one each, every 32nd row, and pass them
-    round (:func:`warp_shfl2`), instead of one dependent read after another per row; otherwise the thread reads the
-    range of each row itself."""
+    ``cull`` (one query per thread, the ball ``ball`` of :func:`thread_ball`): only the cells of the row that a
+    ball reaches (:func:`ball_row_cells`), the thread's own, or where its warp walks a shared box, those any ball of
+    the warp reaches. Where the whole warp walks one shared box (``shared``: a CUDA warp is one group, all of whose
+    threads call this together), its threads read the ranges of its next 32 rows at once, one each, every 32nd
+    row, and pass them round (:func:`warp_shfl2`), instead of one dependent read after another per row; otherwise
+    the thread reads the range of each row itself."""
     span = wp.vec2i(0, 0)
     mine = held
+    lanes = warp_lanes()
     if shared:
-        j = k % warp_lanes()
+        j = k % lanes
         if j == 0:
-            r = row + lane_id() * step
+            lane = lane_id()
+            cells = wp.vec2i(lo[0], hi[0])
+            if cull:
+                # the reach of the warp's balls over each of the rows of this batch, one row at a time
+                for m in range(wp.min(lanes, (nrows - row + step - 1) // step)):
+                    c = ball_row_cells(row + m * step, lo, hi, ball)
+                    c = wp.vec2i(warp_min(c[0]), warp_max(c[1]))
+                    if m == lane:
+                        cells = c
+            r = row + lane * step
             mine = wp.vec2i(0, 0)
             if r < nrows:
-                mine = row_span(r, lo, hi, dims, first)
+                mine = cells_span(r, cells, lo, hi, dims, first)
         span = warp_shfl2(mine, j)
     else:
-        span = row_span(row, lo, hi, dims, first)
+        cells = wp.vec2i(lo[0], hi[0])
+        if cull:
+            cells = ball_row_cells(row, lo, hi, ball)
+        span = cells_span(row, cells, lo, hi, dims, first)
     return span, mine
+
+
+# Traversals of one query per thread walk only the cells of each row that a ball reaches (walk_span)
+CULL = True
 
 
 # Offset of the cell coordinates gathered by atomic maxima in thread_extents: a group's smallest cell c is kept as
@@ -1128,6 +1230,7 @@ def soft_cells_kernel(qb: int):
                 tlo = wp.min(tlo, p - e)
                 thi = wp.max(thi, p + e)
         lo, hi = thread_span_box(g, tlo, thi, box_lo, box_hi, origin, inv_h, dims)
+        ball = thread_ball(tlo, thi, origin, inv_h)
         ns = part_num.shape[0]
         an = vq()
         ad = vq()
@@ -1139,7 +1242,8 @@ def soft_cells_kernel(qb: int):
         held = wp.vec2i(0, 0)
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
+                                    wp.static(qb == 1 and CULL), ball)
             walked += 1
             span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
@@ -1271,6 +1375,7 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                 tlo = wp.min(tlo, p - e)
                 thi = wp.max(thi, p + e)
         lo, hi = thread_span_box(grp, tlo, thi, box_lo, box_hi, origin, inv_h, dims)
+        ball = thread_ball(tlo, thi, origin, inv_h)
         an = vq()
         ad = vq()
         ax = vq()
@@ -1281,7 +1386,8 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         held = wp.vec2i(0, 0)
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
-            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first)
+            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
+                                    wp.static(qb == 1 and CULL), ball)
             walked += 1
             span = row_share(whole, s, splits, steps[1])
             i = span[0]
@@ -1445,44 +1551,29 @@ CHUNK_REACH = 6.0
 VOTE = True
 
 
-def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = False, queries: int = 0,
-                 cuda: bool = True) -> dict:
+def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = False, cuda: bool = True) -> dict:
     """The :func:`ball_cells_kernel` options of one launch of a traversal (those of :data:`BALL_VARIANT` left None),
-    measured on an H200 (``bench/tune.py``; the prefilter and records: ``docs/results/tune_h200_prefilter_form.json``):
+    measured on an H200 (``bench/tune.py``):
 
-    * the midpoint prefilter, with "half" records, for a grid traversal on the CPU (one thread skips the chord of
-      every far edge), and on CUDA for small balls over many ``queries``: below :func:`prefilter_reach` mean edge
-      lengths (``reach``). There it skips the chord of an edge far from every ball of a warp, at the cost of a
-      branch in the loop: 5-7 % faster at 2-6 mean edge lengths on 800k vertices, 2-5 % at 2-4 on 200k, but 5-20 %
-      slower from 3-4 mean edge lengths up on 50k and from 8 up on 800k;
-    * otherwise no prefilter and "unit" records (roots in length units: fewer operations per chord; 2-10 % faster
-      than "half" records there);
+    * the midpoint prefilter, with "half" records, for a grid traversal on the CPU only, where one thread skips the
+      chord of every far edge. On CUDA a warp takes the chords of an edge wherever one of its threads needs them,
+      and since the row walk skips the cells beyond every ball of a warp (:func:`walk_span`), few edges are left
+      that none needs: without the prefilter's branch VNC-hard was 2-7 % faster at 2-6 mean edge lengths on
+      nefertiti and koala subdivided to 800k and 200k vertices, and as fast or faster on the 50k ones
+      (``docs/results/tune_h200_prefilter_form.json``);
+    * otherwise no prefilter and "unit" records (roots in length units: fewer operations per chord);
     * chunked runs for balls of at least :data:`CHUNK_REACH` mean edge lengths (6-14 % faster at 8-16) and for
       every launch over one cell (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long
       edges' one of a grid traversal, most of whose runs are far from a small ball).
     """
     v = dict(BALL_VARIANT)
     if v["prefilter"] is None:
-        v["prefilter"] = strategy == "grid" and (not cuda or reach < prefilter_reach(queries))
+        v["prefilter"] = strategy == "grid" and not cuda
     if v["form"] is None:
         v["form"] = "half" if per_thread == 1 and v["prefilter"] else "unit"
     if v["chunks"] is None:
         v["chunks"] = strategy == "dense" or one_cell or reach >= CHUNK_REACH
     return v
-
-
-# The prefilter pays for balls of less than PREFILTER_REACH mean edge lengths at PREFILTER_QUERIES queries, and for
-# balls larger by one mean edge length per doubling of the queries (measured on an H200 with nefertiti, koala and
-# their subdivisions to 200k and 800k vertices, armadillo and spot: the crossover was 2-4 at 50k, 4-6 at 200k, 6-8 at
-# 800k)
-PREFILTER_REACH = 3.0
-PREFILTER_QUERIES = 50000
-
-
-def prefilter_reach(queries: int) -> float:
-    """The ball radius, in mean edge lengths, below which a grid traversal of ``queries`` balls takes the prefilter
-    (:func:`ball_variant`)."""
-    return PREFILTER_REACH + math.log2(max(queries, 1) / PREFILTER_QUERIES)
 
 
 @wp.kernel(enable_backward=False)

@@ -133,27 +133,21 @@ def test_every_ball_kernel_variant(form, runs, prefilter, cuda_launch_shape, mon
 
 def test_ball_variant_rule():
     """The kernel variant each ball traversal takes (``kernels.vnc.ball_variant``): the midpoint prefilter, with
-    "half" records, for every grid traversal on the CPU and on CUDA only below ``prefilter_reach(queries)`` mean edge
-    lengths, a crossover one mean edge length larger per doubling of the queries; never in a dense traversal;
-    "unit" records otherwise and for several queries per thread; runs of records from CHUNK_REACH and over one cell."""
+    "half" records, for every grid traversal on the CPU and never on CUDA (the row walk already skips the cells
+    beyond a warp's balls) nor in a dense traversal; "unit" records otherwise and for several queries per thread;
+    runs of records from CHUNK_REACH and over one cell."""
     v = _k.ball_variant
     for reach in (1.0, 2.0, 8.0, 40.0):
-        assert v("grid", 1, reach, queries=10, cuda=False)["prefilter"]
-        assert v("grid", 1, reach, queries=10, cuda=False)["form"] == "half"
-        assert not v("dense", 1, reach, queries=10**7)["prefilter"]
-    assert _k.prefilter_reach(100_000) == pytest.approx(_k.prefilter_reach(50_000) + 1.0)
-    assert v("grid", 1, 2.0, queries=800_000)["prefilter"]
-    assert v("grid", 1, 6.0, queries=800_000)["prefilter"]
-    assert not v("grid", 1, 8.0, queries=800_000)["prefilter"]
-    assert v("grid", 1, 2.0, queries=50_000)["prefilter"]
-    assert not v("grid", 1, 4.0, queries=50_000)["prefilter"]
-    for queries, reach in ((800_000, 2.0), (800_000, 8.0), (50_000, 4.0)):
+        assert v("grid", 1, reach, cuda=False)["prefilter"]
+        assert v("grid", 1, reach, cuda=False)["form"] == "half"
+        assert not v("dense", 1, reach, cuda=False)["prefilter"]
         for per_thread in (1, 4):
-            chosen = v("grid", per_thread, reach, queries=queries)
-            assert chosen["form"] == ("half" if per_thread == 1 and chosen["prefilter"] else "unit")
-    assert not v("grid", 1, 0.99 * _k.CHUNK_REACH, queries=50_000)["chunks"]
-    assert v("grid", 1, _k.CHUNK_REACH, queries=50_000)["chunks"]
-    assert v("grid", 1, 2.0, one_cell=True, queries=50_000)["chunks"]
+            chosen = v("grid", per_thread, reach)
+            assert not chosen["prefilter"] and chosen["form"] == "unit"
+    assert v("grid", 4, 2.0, cuda=False)["form"] == "unit"
+    assert not v("grid", 1, 0.99 * _k.CHUNK_REACH)["chunks"]
+    assert v("grid", 1, _k.CHUNK_REACH)["chunks"]
+    assert v("grid", 1, 2.0, one_cell=True)["chunks"]
 
 
 def _numpy_group_boxes(x, radius, order, size, per_thread, margin, pad, origin, inv_h, dims):
@@ -383,6 +377,67 @@ def test_cell_index_matches_numpy(device):
     np.testing.assert_array_equal(np.sort(order), np.arange(mesh.num_vertices))
     first = cells.first.numpy()
     np.testing.assert_array_equal(first, np.searchsorted(np.sort(key), np.arange(dims.prod() + 1)))
+
+
+@wp.kernel
+def _ball_row_cells_kernel(balls: wp.array(dtype=wp.vec4), lo: wp.array(dtype=wp.vec3i), hi: wp.array(dtype=wp.vec3i),
+                           rows: wp.array(dtype=int), out: wp.array(dtype=wp.vec2i)):
+    i = wp.tid()
+    out[i] = _k.ball_row_cells(rows[i], lo[i], hi[i], balls[i])
+
+
+def test_row_cells_of_a_ball_match_float64(device):
+    """``ball_row_cells`` (the row walk reads only these cells of a row: ``walk_span``) equals the float64 interval
+    ``floor(cx -+ sqrt(R^2 - dy^2 - dz^2))`` of the ball over the row's slab, clamped to the box, and is empty where
+    the ball misses the slab; and it holds every cell of a point inside the ball."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    c = rng.uniform(0.0, 40.0, (n, 3))
+    R = rng.uniform(0.2, 6.0, n)
+    R[::17] = -1.0  # a thread with no query
+    lo = np.floor(c - np.abs(R)[:, None] - rng.integers(0, 3, (n, 3))).astype(np.int64)
+    hi = np.floor(c + np.abs(R)[:, None] + rng.integers(0, 3, (n, 3))).astype(np.int64)
+    ny, nz = hi[:, 1] - lo[:, 1] + 1, hi[:, 2] - lo[:, 2] + 1
+    rows = (rng.uniform(size=n) * ny * nz).astype(np.int64)
+    y, z = lo[:, 1] + rows % ny, lo[:, 2] + rows // ny
+    balls = np.concatenate([c, R[:, None]], axis=1).astype(np.float32)
+    out = wp.zeros(n, dtype=wp.vec2i, device=device)
+    wp.launch(_ball_row_cells_kernel, dim=n,
+              inputs=[wp.array(balls, dtype=wp.vec4, device=device), wp.array(lo, dtype=wp.vec3i, device=device),
+                      wp.array(hi, dtype=wp.vec3i, device=device), wp.array(rows, dtype=wp.int32, device=device)],
+              outputs=[out], device=device)
+    got = out.numpy()
+    b = balls.astype(np.float64)
+    dy = np.maximum(np.maximum(y - b[:, 1], b[:, 1] - (y + 1)), 0.0)
+    dz = np.maximum(np.maximum(z - b[:, 2], b[:, 2] - (z + 1)), 0.0)
+    w2 = b[:, 3] ** 2 - dy ** 2 - dz ** 2
+    hit = (b[:, 3] >= 0) & (w2 >= 0)
+    w = np.sqrt(np.maximum(w2, 0.0))
+    first = np.floor(np.clip(b[:, 0] - w, lo[:, 0], hi[:, 0] + 1))
+    last = np.floor(np.clip(b[:, 0] + w, lo[:, 0] - 1, hi[:, 0]))
+    # away from float32 rounding at a cell boundary or a ball barely touching the slab
+    sure = (np.abs(b[:, 0] - w - np.round(b[:, 0] - w)) > 1e-3) & (np.abs(b[:, 0] + w - np.round(b[:, 0] + w)) > 1e-3)
+    sure &= np.abs(w2) > 1e-3
+    assert sure.mean() > 0.9 and hit.sum() > n // 4 and (~hit).sum() > n // 10
+    np.testing.assert_array_equal(got[sure & hit, 0], first[sure & hit])
+    np.testing.assert_array_equal(got[sure & hit, 1], last[sure & hit])
+    assert np.all(got[sure & ~hit, 0] > got[sure & ~hit, 1])
+    # the reach of a ball over a row is narrower than the box's row for most rows
+    assert np.mean((got[:, 1] - got[:, 0]) < (hi[:, 0] - lo[:, 0])) > 0.5
+    # every point inside a ball (in a row of the box) lies in the cells returned for its row
+    u = rng.normal(size=(n, 3))
+    p = c + u / np.linalg.norm(u, axis=1, keepdims=True) * (np.abs(R) * rng.uniform(0, 1, n) ** (1 / 3))[:, None]
+    cell = np.floor(p).astype(np.int64)
+    inside = (R > 0) & np.all((cell >= lo) & (cell <= hi), axis=1)
+    prow = (cell[:, 1] - lo[:, 1]) + ny * (cell[:, 2] - lo[:, 2])
+    out2 = wp.zeros(n, dtype=wp.vec2i, device=device)
+    wp.launch(_ball_row_cells_kernel, dim=n,
+              inputs=[wp.array(balls, dtype=wp.vec4, device=device), wp.array(lo, dtype=wp.vec3i, device=device),
+                      wp.array(hi, dtype=wp.vec3i, device=device), wp.array(prow, dtype=wp.int32, device=device)],
+              outputs=[out2], device=device)
+    cells = out2.numpy()
+    assert inside.sum() > n // 2
+    assert np.all((cells[inside, 0] <= cell[inside, 0]) & (cell[inside, 0] <= cells[inside, 1]))
 
 
 def test_auto_choice_and_bad_strategy(device):

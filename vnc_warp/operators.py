@@ -427,7 +427,7 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     ns = groups.splits
     parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     reach = _pairs.ball_reach(b)
-    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1), P, device.is_cuda)
+    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1), device.is_cuda)
                 for c, _ in plans]
     variant = variants[0]
     # every traversal reads the edges in one sorted order (ball_plans)
