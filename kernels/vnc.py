@@ -823,6 +823,20 @@ def warp_lanes() -> int:
 @wp.func_native(
     """
 #if defined(__CUDA_ARCH__)
+    return true;
+#else
+    return false;
+#endif
+"""
+)
+def on_cuda() -> bool:
+    """Whether the calling kernel runs on a CUDA device (a constant of each device's build)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
     return (int)(threadIdx.x & 31);
 #else
     return 0;
@@ -973,6 +987,10 @@ def walk_span(k: int, row: int, step: int, nrows: int, shared: bool, held: wp.ve
 
 # Traversals of one query per thread walk only the cells of each row that a ball reaches (walk_span)
 CULL = True
+# ... and on the CPU device, where one thread walks its own ball's box and every row holds few candidates, the per-row
+# reach costs more than the candidates it skips (VNC-hard with the prefilter, spot at 2 mean edge lengths: 20.9 ->
+# 27.4 ms; tests set it to cover the culled walk on the CPU too)
+CULL_CPU = False
 
 
 # Offset of the cell coordinates gathered by atomic maxima in thread_extents: a group's smallest cell c is kept as
@@ -1164,8 +1182,9 @@ def soft_cells_kernel(qb: int):
     less precise), a select instead of the cut-off branch, two sources per iteration, and the exponent expanded about
     each thread's first query (four multiply-adds per pair instead of seven, but 1.5x slower at large scales).
     """
-    if qb in _soft_cells_kernels:
-        return _soft_cells_kernels[qb]
+    key = (qb, bool(CULL), bool(CULL_CPU))
+    if key in _soft_cells_kernels:
+        return _soft_cells_kernels[key]
     vq = wp.types.vector(length=qb, dtype=wp.float32)
 
     @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
@@ -1243,7 +1262,7 @@ def soft_cells_kernel(qb: int):
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
             whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
-                                    wp.static(qb == 1 and CULL), ball)
+                                    wp.static(qb == 1 and CULL) and (on_cuda() or wp.static(CULL_CPU)), ball)
             walked += 1
             span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
@@ -1267,7 +1286,7 @@ def soft_cells_kernel(qb: int):
                 part_den[s, t0 + q] = ad[q]
                 part_n[s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
 
-    _soft_cells_kernels[qb] = soft_cells
+    _soft_cells_kernels[key] = soft_cells
     return soft_cells
 
 
@@ -1301,7 +1320,7 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         raise ValueError(f"form must be 'unit' or 'half', got {form!r}")
     unit = form == "unit"
     vote = bool(VOTE)
-    key = (qb, bool(prefilter), form, bool(chunks), vote)
+    key = (qb, bool(prefilter), form, bool(chunks), vote, bool(CULL), bool(CULL_CPU))
     if key in _ball_cells_kernels:
         return _ball_cells_kernels[key]
     vq = wp.types.vector(length=qb, dtype=wp.float32)
@@ -1387,7 +1406,7 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
             whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
-                                    wp.static(qb == 1 and CULL), ball)
+                                    wp.static(qb == 1 and CULL) and (on_cuda() or wp.static(CULL_CPU)), ball)
             walked += 1
             span = row_share(whole, s, splits, steps[1])
             i = span[0]

@@ -71,6 +71,36 @@ def test_soft_far_from_the_origin(cuda_launch_shape, device):
             np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"{s}, tau={tau / l:.1f} l")
 
 
+@pytest.mark.parametrize("shape", ["device", "warps", "warps, own boxes"])
+def test_culled_row_walk(shape, monkeypatch, device):
+    """The row walk of one query per thread that reads only the cells of a row some ball reaches (``walk_span``; on
+    CUDA always, on the CPU with ``CULL_CPU``) misses no pair: VNC-soft and VNC-hard through the grid equal their
+    float64 dense references, on a unit-sized mesh and on one 500 units across and 800 from the origin, from 1.5
+    mean edge lengths to most of the mesh, with the device's launch shape and with groups of 32 threads split 3 ways
+    (as on a GPU) sharing boxes or (``SPREAD`` 1.01) walking their own."""
+    monkeypatch.setattr(_k, "CULL_CPU", True)
+    if shape != "device":
+        monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0: (32 * per_thread, 3))
+        monkeypatch.setattr(_pairs, "queries_per_thread", lambda device, work, most: 1)
+    if shape == "warps, own boxes":
+        monkeypatch.setattr(_pairs, "SPREAD", 1.01)
+    base = _bumpy_sphere()
+    for mesh in (base, vw.from_arrays(base.vertices * 250.0 + np.float32(800.0), base.faces)):
+        v64 = torch.tensor(mesh.vertices, dtype=torch.float64)
+        idx = np.arange(0, mesh.num_vertices, 7)
+        l = mesh.mean_edge_length
+        for tau in (1.5 * l, 4.0 * l, 0.7 * mesh.bbox_diagonal):
+            H, n = vw.vnc_soft(mesh, tau, device=device, strategy="grid")
+            Hr, nr = dense_soft(v64, mesh.faces, tau)
+            np.testing.assert_allclose(H.numpy(), Hr.numpy(), rtol=1e-4, atol=1e-5 * np.abs(Hr.numpy()).max(),
+                                       err_msg=f"soft, tau={tau / l:.1f} l")
+            np.testing.assert_allclose(n.numpy(), nr.numpy(), atol=2e-5, err_msg=f"soft, tau={tau / l:.1f} l")
+            h = vw.vnc_hard(mesh, tau, device=device, strategy="grid")[0].numpy()
+            num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices[idx], tau, 6.0)
+            np.testing.assert_allclose(h[idx], num / (2 * den), rtol=2e-4, atol=2e-6 * np.abs(num / den).max(),
+                                       err_msg=f"hard, tau={tau / l:.1f} l")
+
+
 @pytest.mark.parametrize("spread", [None, 1.01])
 def test_strategies_agree_with_cuda_launch_shape(cuda_launch_shape, spread, monkeypatch, device):
     """With warp-sized groups and split candidates (the CUDA shape, V not a multiple of 32), "grid" and "dense"
