@@ -502,11 +502,21 @@ def box_rows(lo: wp.vec3i, hi: wp.vec3i):
 
 
 @wp.func
-def row_span(row: int, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
-    """Sorted-source range ``[begin, end)`` of row ``row`` of the box: cells ``lo.x..hi.x`` at one ``(y, z)``."""
+def cells_span(row: int, cells: wp.vec2i, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
+    """Sorted-source range ``[begin, end)`` of the cells ``cells[0]..cells[1]`` of row ``row`` of the box (empty
+    where ``cells[0] > cells[1]``)."""
     ny = hi[1] - lo[1] + 1
     base = dims[0] * (lo[1] + row % ny + dims[1] * (lo[2] + row // ny))
-    return wp.vec2i(first[base + lo[0]], first[base + hi[0] + 1])
+    out = wp.vec2i(0, 0)
+    if cells[0] <= cells[1]:
+        out = wp.vec2i(first[base + cells[0]], first[base + cells[1] + 1])
+    return out
+
+
+@wp.func
+def row_span(row: int, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
+    """Sorted-source range ``[begin, end)`` of row ``row`` of the box: cells ``lo.x..hi.x`` at one ``(y, z)``."""
+    return cells_span(row, wp.vec2i(lo[0], hi[0]), lo, hi, dims, first)
 
 
 @wp.func
@@ -883,24 +893,11 @@ def warp_min(v: int) -> int:
     ...
 
 
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 800)
-    return __reduce_max_sync(0xffffffffu, v);
-#elif defined(__CUDA_ARCH__)
-    int m = v;
-    for (int o = 16; o > 0; o >>= 1)
-        m = max(m, __shfl_xor_sync(0xffffffffu, m, o));
-    return m;
-#else
-    return v;
-#endif
-"""
-)
+@wp.func
 def warp_max(v: int) -> int:
-    """Maximum of ``v`` over the 32 threads of the calling thread's CUDA warp, all of which must call it together;
-    ``v`` itself on the CPU."""
-    ...
+    """Maximum of ``v`` (> INT_MIN) over the 32 threads of the calling thread's CUDA warp, all of which must call
+    it together (:func:`warp_min` of ``-v``); ``v`` itself on the CPU."""
+    return -warp_min(-v)
 
 
 @wp.func
@@ -930,18 +927,6 @@ def ball_row_cells(row: int, lo: wp.vec3i, hi: wp.vec3i, ball: wp.vec4):
         w = wp.sqrt(w2)
         out = wp.vec2i(int(wp.floor(wp.clamp(ball[0] - w, float(lo[0]), float(hi[0] + 1)))),
                        int(wp.floor(wp.clamp(ball[0] + w, float(lo[0] - 1), float(hi[0])))))
-    return out
-
-
-@wp.func
-def cells_span(row: int, cells: wp.vec2i, lo: wp.vec3i, hi: wp.vec3i, dims: wp.vec3i, first: wp.array(dtype=int)):
-    """Sorted-source range ``[begin, end)`` of the cells ``cells[0]..cells[1]`` of row ``row`` of the box (empty
-    where ``cells[0] > cells[1]``)."""
-    ny = hi[1] - lo[1] + 1
-    base = dims[0] * (lo[1] + row % ny + dims[1] * (lo[2] + row // ny))
-    out = wp.vec2i(0, 0)
-    if cells[0] <= cells[1]:
-        out = wp.vec2i(first[base + cells[0]], first[base + cells[1] + 1])
     return out
 
 

@@ -431,12 +431,16 @@ def test_row_cells_of_a_ball_match_float64(device):
     rows = (rng.uniform(size=n) * ny * nz).astype(np.int64)
     y, z = lo[:, 1] + rows % ny, lo[:, 2] + rows // ny
     balls = np.concatenate([c, R[:, None]], axis=1).astype(np.float32)
-    out = wp.zeros(n, dtype=wp.vec2i, device=device)
-    wp.launch(_ball_row_cells_kernel, dim=n,
-              inputs=[wp.array(balls, dtype=wp.vec4, device=device), wp.array(lo, dtype=wp.vec3i, device=device),
-                      wp.array(hi, dtype=wp.vec3i, device=device), wp.array(rows, dtype=wp.int32, device=device)],
-              outputs=[out], device=device)
-    got = out.numpy()
+
+    def row_cells(rows):
+        out = wp.zeros(n, dtype=wp.vec2i, device=device)
+        wp.launch(_ball_row_cells_kernel, dim=n,
+                  inputs=[wp.array(balls, dtype=wp.vec4, device=device), wp.array(lo, dtype=wp.vec3i, device=device),
+                          wp.array(hi, dtype=wp.vec3i, device=device), wp.array(rows, dtype=wp.int32, device=device)],
+                  outputs=[out], device=device)
+        return out.numpy()
+
+    got = row_cells(rows)
     b = balls.astype(np.float64)
     dy = np.maximum(np.maximum(y - b[:, 1], b[:, 1] - (y + 1)), 0.0)
     dz = np.maximum(np.maximum(z - b[:, 2], b[:, 2] - (z + 1)), 0.0)
@@ -460,12 +464,7 @@ def test_row_cells_of_a_ball_match_float64(device):
     cell = np.floor(p).astype(np.int64)
     inside = (R > 0) & np.all((cell >= lo) & (cell <= hi), axis=1)
     prow = (cell[:, 1] - lo[:, 1]) + ny * (cell[:, 2] - lo[:, 2])
-    out2 = wp.zeros(n, dtype=wp.vec2i, device=device)
-    wp.launch(_ball_row_cells_kernel, dim=n,
-              inputs=[wp.array(balls, dtype=wp.vec4, device=device), wp.array(lo, dtype=wp.vec3i, device=device),
-                      wp.array(hi, dtype=wp.vec3i, device=device), wp.array(prow, dtype=wp.int32, device=device)],
-              outputs=[out2], device=device)
-    cells = out2.numpy()
+    cells = row_cells(prow)
     assert inside.sum() > n // 2
     assert np.all((cells[inside, 0] <= cell[inside, 0]) & (cell[inside, 0] <= cells[inside, 1]))
 
