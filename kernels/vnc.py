@@ -25,9 +25,13 @@ results are deterministic. The forward VNC-soft kernel holds ``QB`` queries per 
 query per thread read of each row only the cells some ball of the group reaches (:func:`walk_span`): a box is the
 bounding box of its balls, and its rows' ends are mostly beyond all of them.
 
-The ball kernels (Eqs. 1-2) read edges sorted once for all their edge-length tiers (:func:`tier_cell_keys`), each
-cell's along a Morton curve, so that a run of ``CHUNK`` consecutive records is a small patch whose box
-(:func:`chunk_boxes`) can be tested against a thread's balls as a whole (``ball_cells_kernel(chunks=True)``).
+The ball kernels (Eqs. 1-2) reach an edge from up to half its length beyond the radius. A single-scale traversal
+reads *pieces* of the edges (:func:`piece_counts`, :func:`piece_keys`, :func:`pack_piece_sources`: each edge cut into
+equal pieces no longer than a set length, each piece in the cell of its centre, its record holding the edge's midpoint
+and the piece's ends along the edge), so that half a piece, not half the longest edge, widens the balls; the
+multi-scale traversal reads whole edges sorted once for all their edge-length tiers (:func:`tier_cell_keys`). Either
+way each cell's records can run along a Morton curve, so that a run of ``CHUNK`` consecutive records is a small patch
+whose box (:func:`chunk_boxes`) can be tested against a thread's balls as a whole (``ball_cells_kernel(chunks=True)``).
 """
 
 
@@ -1118,9 +1122,10 @@ def pack_ball_sources(
     val: wp.array(dtype=wp.vec4),
 ):
     """Edges in sorted order for the ball kernels, ``val = (alpha_j delta_j, n_j)`` and either (``unit``) midpoint
-    and unit direction ``d`` (zero for a degenerate edge), ``seg_m = (m_j, L_j / 2)``, ``seg_h = (d_j, L_j)``, or
-    midpoint and half-vector ``h = (x_b - x_a) / 2``, ``seg_m = (m_j, 1 / |h|^2)`` (0 for a degenerate edge),
-    ``seg_h = (h, |h|)``."""
+    and unit direction ``d`` (zero for a degenerate edge), ``seg_m = (m_j, L_j / 2)``, ``seg_h = (d_j, L_j / 2)``
+    (the segment ``m + u d``, ``u`` in ``[-seg_h[3], seg_m[3]]``, as :func:`pack_piece_sources` writes a piece of
+    an edge), or midpoint and half-vector ``h = (x_b - x_a) / 2``, ``seg_m = (m_j, 1 / |h|^2)`` (0 for a degenerate
+    edge), ``seg_h = (h, |h|)``."""
     i = wp.tid()
     j = order[i]
     ev = edges[j]
@@ -1135,13 +1140,128 @@ def pack_ball_sources(
         if half > 0.0:
             d = h / half
         seg_m[i] = wp.vec4(m[0], m[1], m[2], half)
-        seg_h[i] = wp.vec4(d[0], d[1], d[2], 2.0 * half)
+        seg_h[i] = wp.vec4(d[0], d[1], d[2], half)
     else:
         inv = float(0.0)
         if hh > 0.0:
             inv = 1.0 / hh
         seg_m[i] = wp.vec4(m[0], m[1], m[2], inv)
         seg_h[i] = wp.vec4(h[0], h[1], h[2], half)
+    u = enormal[j]
+    val[i] = wp.vec4(angle[j], u[0], u[1], u[2])
+
+
+@wp.kernel(enable_backward=False)
+def piece_counts(length: wp.array(dtype=float), inv_piece: float, counts: wp.array(dtype=int)):
+    """Pieces of edge ``j`` for the ball kernels: ``k_j = max(ceil(L_j / P), 1)`` (``inv_piece = 1 / P``), so that no
+    piece is longer than ``P`` (up to float32 rounding)."""
+    j = wp.tid()
+    counts[j] = wp.max(int(wp.ceil(length[j] * inv_piece)), 1)
+
+
+@wp.func
+def edge_piece(xa: wp.vec3, xb: wp.vec3, c: int, k: int):
+    """Piece ``c`` of ``k`` equal pieces of the edge ``xa -> xb``: ``(m, d, a, b)``, the edge's midpoint ``m`` and unit
+    direction ``d`` (zero for a degenerate edge) and the piece ``m + u d``, ``u`` in ``[-b, a]``. The ends are
+    computed alike for neighbouring pieces and the outer ones are the edge's own, so the pieces tile the edge."""
+    m = 0.5 * (xa + xb)
+    h = 0.5 * (xb - xa)
+    half = wp.length(h)
+    d = wp.vec3(0.0)
+    if half > 0.0:
+        d = h / half
+    step = 2.0 * half / float(k)
+    lo = -half + float(c) * step
+    hi = half
+    if c + 1 < k:
+        hi = -half + float(c + 1) * step
+    if c == 0:
+        lo = -half
+    return m, d, hi, -lo
+
+
+@wp.kernel(enable_backward=False)
+def piece_keys(
+    x: wp.array(dtype=wp.vec3),
+    edges: wp.array(dtype=wp.vec4i),
+    counts: wp.array(dtype=int),
+    offsets: wp.array(dtype=int),
+    origin: wp.vec3,
+    inv_h: float,
+    dims: wp.vec3i,
+    fine_bits: int,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+    piece_edge: wp.array(dtype=int),
+    piece_index: wp.array(dtype=int),
+    cell_counts: wp.array(dtype=int),
+):
+    """Sort keys of the pieces of the edges (:func:`piece_counts`; edge ``j``'s at slots ``offsets[j] ..``, an
+    exclusive scan of ``counts``) in slots ``0 .. capacity - 1`` (``capacity = piece_edge.shape[0]``, at least the
+    total): a piece's key is the row-major cell of its centre (shifted left by ``fine_bits`` of a Morton order within
+    the cell, :func:`fine_code`), ``cell_counts[cell]`` (zeroed first) += 1; a slot past the last piece gets the key
+    of bucket ``num_cells`` (sorted after every piece, counted nowhere) and ``piece_edge = -1``. Thread ``i`` writes
+    the pieces of edge ``i`` and the slot ``i`` when it is past the last piece."""
+    i = wp.tid()
+    capacity = piece_edge.shape[0]
+    ne = counts.shape[0]
+    total = offsets[ne - 1] + counts[ne - 1]
+    if i >= total:
+        keys[i] = (dims[0] * dims[1] * dims[2]) << fine_bits
+        values[i] = i
+        piece_edge[i] = -1
+        piece_index[i] = 0
+    if i < ne:
+        ev = edges[i]
+        xa = x[ev[0]]
+        xb = x[ev[1]]
+        k = counts[i]
+        for c in range(k):
+            slot = offsets[i] + c
+            if slot < capacity:
+                m, d, a, b = edge_piece(xa, xb, c, k)
+                p = m + d * (0.5 * (a - b))
+                q = (p - origin) * inv_h
+                cc = cell_coord(p, origin, inv_h, dims)
+                cell = cell_index(cc, dims)
+                keys[slot] = (cell << fine_bits) | fine_code(q, cc, fine_bits)
+                values[slot] = slot
+                piece_edge[slot] = i
+                piece_index[slot] = c
+                wp.atomic_add(cell_counts, cell, 1)
+
+
+@wp.kernel(enable_backward=False)
+def pack_piece_sources(
+    order: wp.array(dtype=int),
+    piece_edge: wp.array(dtype=int),
+    piece_index: wp.array(dtype=int),
+    counts: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    edges: wp.array(dtype=wp.vec4i),
+    angle: wp.array(dtype=float),
+    enormal: wp.array(dtype=wp.vec3),
+    seg_m: wp.array(dtype=wp.vec4),
+    seg_h: wp.array(dtype=wp.vec4),
+    val: wp.array(dtype=wp.vec4),
+):
+    """Pieces of edges in sorted order (``order``: sorted slots of :func:`piece_keys`) for the ball kernels, in the
+    "unit" form of :func:`pack_ball_sources` with the *edge's* midpoint: ``seg_m = (m_j, a)``, ``seg_h = (d_j, b)``,
+    the piece ``m_j + u d_j``, ``u`` in ``[-b, a]``, ``val = (alpha_j delta_j, n_j)``. The chord of a ball and an edge
+    is the sum of its pieces' chords, and the weight ``exp(-g |p - m_j|^2)`` of Eq. (2) is the edge's, so the sums of
+    Eqs. (1)-(2) over pieces equal those over edges. Slots past the last piece get zero records."""
+    i = wp.tid()
+    s = order[i]
+    j = piece_edge[s]
+    if j < 0:
+        seg_m[i] = wp.vec4(0.0)
+        seg_h[i] = wp.vec4(0.0)
+        val[i] = wp.vec4(0.0)
+        return
+    ev = edges[j]
+    m, d, a, b = edge_piece(x[ev[0]], x[ev[1]], piece_index[s], counts[j])
+    seg_m[i] = wp.vec4(m[0], m[1], m[2], a)
+    seg_h[i] = wp.vec4(d[0], d[1], d[2], b)
     u = enormal[j]
     val[i] = wp.vec4(angle[j], u[0], u[1], u[2])
 
@@ -1287,8 +1407,9 @@ _ball_cells_kernels = {}
 def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chunks: bool = False):
     """The edge/ball traversal kernel of Eqs. (1)-(2) with ``qb`` queries per thread (compiled once per variant).
 
-    ``form``: the edge records the kernel reads (:func:`pack_ball_sources`), "unit" (midpoint, unit direction, the
-    roots in length units) or "half" (midpoint, half-vector, the roots in ``[-1, 1]``).
+    ``form``: the edge records the kernel reads (:func:`pack_ball_sources`), "unit" (midpoint, unit direction and the
+    segment's ends along it, the roots in length units: a whole edge, or a piece of one from
+    :func:`pack_piece_sources`) or "half" (midpoint, half-vector, the roots in ``[-1, 1]``).
     The chord is the roots clipped to the edge with no branch on whether the edge's line meets the ball (a line that
     misses gets an empty chord from the same clipping): on an H200 1-8 % faster than a branch on the root at 2-8
     mean edge lengths (nefertiti, koala, their subdivisions, armadillo, spot); reading two edges per iteration was
@@ -1435,7 +1556,7 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                         ev = load4(val, ii)
                         L = float(0.0)
                         if wp.static(unit):
-                            L = 2.0 * sm[3]
+                            L = sm[3] + load4(seg_h, ii)[3]
                         else:
                             L = 2.0 * load4(seg_h, ii)[3]
                         for q in range(qb):
@@ -1456,7 +1577,8 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                         hh = sh[3] * sh[3]
                         half = sh[3]
                         if wp.static(unit):
-                            half = sm[3]
+                            # the farthest point of the segment m + u d, u in [-sh[3], sm[3]], from m
+                            half = wp.max(sm[3], sh[3])
                         for q in range(qb):
                             cx = sm[0] - px[q]
                             cy = sm[1] - py[q]
@@ -1471,7 +1593,7 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                                 l_in = float(0.0)
                                 disc = float(0.0)
                                 if wp.static(unit):
-                                    # |m - p + u d|^2 = r^2 at u = -ch +- sqrt(disc), u in [-L/2, L/2] on the edge
+                                    # |m - p + u d|^2 = r^2 at u = -ch +- sqrt(disc)
                                     disc = ch * ch - (cc - r2[q])
                                 else:
                                     disc = ch * ch - hh * (cc - r2[q])
@@ -1479,8 +1601,9 @@ def ball_cells_kernel(qb: int, prefilter: bool = False, form: str = "unit", chun
                                 # chord from the same clipping
                                 sq = wp.sqrt(wp.max(disc, 0.0))
                                 if wp.static(unit):
-                                    # the chord min(sq - ch, L/2) - max(-sq - ch, -L/2), without negations
-                                    l_in = wp.max(wp.min(sq - ch, half) + wp.min(sq + ch, half), 0.0)
+                                    # the chord min(sq - ch, a) - max(-sq - ch, -b) of the segment u in [-b, a]
+                                    # (a = b = L/2 for a whole edge), without negations
+                                    l_in = wp.max(wp.min(sq - ch, sm[3]) + wp.min(sq + ch, sh[3]), 0.0)
                                 else:
                                     # the roots of |m - p + u h|^2 = r^2 clipped to [-1, 1]: an edge with both
                                     # ends inside gets its whole length, a degenerate one (1 / hh = 0) nothing
@@ -1535,11 +1658,17 @@ def chunk_boxes(
             sm = seg_m[i]
             sh = seg_h[i]
             m = wp.vec3(sm[0], sm[1], sm[2])
-            h = wp.vec3(wp.abs(sh[0]), wp.abs(sh[1]), wp.abs(sh[2]))
+            d = wp.vec3(sh[0], sh[1], sh[2])
             if unit != 0:
-                h = h * sm[3]
-            blo = wp.min(blo, m - h)
-            bhi = wp.max(bhi, m + h)
+                # the segment m + u d, u in [-sh[3], sm[3]]
+                ea = m + d * sm[3]
+                eb = m - d * sh[3]
+                blo = wp.min(blo, wp.min(ea, eb))
+                bhi = wp.max(bhi, wp.max(ea, eb))
+            else:
+                h = wp.vec3(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
+                blo = wp.min(blo, m - h)
+                bhi = wp.max(bhi, m + h)
     lo[c] = blo
     hi[c] = bhi
 
@@ -1547,10 +1676,11 @@ def chunk_boxes(
 # the variant of the ball kernel the operators launch (bench/tune.py times the others); None: chosen per traversal
 # by ball_variant
 BALL_VARIANT = {"prefilter": None, "form": None, "chunks": None}
-# runs of edge records are tested as a whole from this ball radius on, in mean edge lengths (a run of CHUNK records
-# is a patch a few edges wide: a smaller ball seldom holds one, and testing runs cost up to 5 % at 4 edge lengths on an
-# H200)
-CHUNK_REACH = 6.0
+# runs of edge records are tested as a whole from this ball radius on, in mean edge lengths, per device kind (a run of
+# CHUNK records is a patch a few edges wide: a smaller ball seldom holds one). On an H200, over pieces of the edges,
+# testing runs cost 5-16 % at 6-8 edge lengths (koala 6 l 0.45 -> 0.52 ms, nefertiti 8 l 0.56 -> 0.59 ms) and saved a
+# third from 12 on (koala 12 l 1.69 -> 1.11 ms, where a thread takes several queries).
+CHUNK_REACH = {"cuda": 10.0, "cpu": 6.0}
 # Chunked ball kernels: a run inside every ball of one thread but not of all threads of its warp takes the chords
 VOTE = True
 
@@ -1566,8 +1696,8 @@ def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = 
       nefertiti and koala subdivided to 800k and 200k vertices, and as fast or faster on the 50k ones
       (``docs/results/tune_h200_prefilter_form.json``);
     * otherwise no prefilter and "unit" records (roots in length units: fewer operations per chord);
-    * chunked runs for balls of at least :data:`CHUNK_REACH` mean edge lengths (6-14 % faster at 8-16) and for
-      every launch over one cell (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long
+    * chunked runs for balls of at least :data:`CHUNK_REACH` mean edge lengths (a third faster at 12-16 on CUDA)
+      and for every launch over one cell (``one_cell``: a dense traversal, 1.6x faster at half the diagonal, or the long
       edges' one of a grid traversal, most of whose runs are far from a small ball).
     """
     v = dict(BALL_VARIANT)
@@ -1576,7 +1706,7 @@ def ball_variant(strategy: str, per_thread: int, reach: float, one_cell: bool = 
     if v["form"] is None:
         v["form"] = "half" if per_thread == 1 and v["prefilter"] else "unit"
     if v["chunks"] is None:
-        v["chunks"] = strategy == "dense" or one_cell or reach >= CHUNK_REACH
+        v["chunks"] = strategy == "dense" or one_cell or reach >= CHUNK_REACH["cuda" if cuda else "cpu"]
     return v
 
 

@@ -136,16 +136,19 @@ def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
         np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6)
 
 
-@pytest.mark.parametrize("form", ["unit", "half"])
+@pytest.mark.parametrize("form", ["unit", "half", "pieces"])
 @pytest.mark.parametrize("runs", ["chords", "chunks", "chunks-no-vote"])
 @pytest.mark.parametrize("prefilter", [False, True], ids=["all", "prefilter"])
 def test_every_ball_kernel_variant(form, runs, prefilter, cuda_launch_shape, monkeypatch, device):
     """Each variant of the ball kernel (``bench/tune.py`` times them all; ``ball_variant`` picks one per traversal):
-    edge records, chunked runs (with and without the warp vote that sends a run some threads of a CUDA warp need the
+    edge records ("unit" or "half" whole edges through edge-length tiers, or "pieces" of the edges, in unit
+    records), chunked runs (with and without the warp vote that sends a run some threads of a CUDA warp need the
     chords of to all of them: kernels.vnc.VOTE), prefilter, 4 queries per thread over 3 splits; Eq. (2) with and
     without the Gaussian equals the float64 dense reference from a ball of one edge length (no run inside it) to the
-    whole mesh (every run inside), through the grid (edge-length tiers: scan-like long edges) and densely."""
-    monkeypatch.setattr(_k, "BALL_VARIANT", {"prefilter": prefilter, "form": form, "chunks": runs != "chords"})
+    whole mesh (every run inside), through the grid (scan-like long edges) and densely."""
+    monkeypatch.setattr(_pairs, "PIECES", form == "pieces")
+    monkeypatch.setattr(_k, "BALL_VARIANT", {"prefilter": prefilter, "form": "unit" if form == "pieces" else form,
+                                             "chunks": runs != "chords"})
     monkeypatch.setattr(_k, "VOTE", runs != "chunks-no-vote")
     mesh = _bumpy_sphere(subdiv=3, seed=3)
     v = mesh.vertices.copy()
@@ -165,7 +168,7 @@ def test_ball_variant_rule():
     """The kernel variant each ball traversal takes (``kernels.vnc.ball_variant``): the midpoint prefilter, with
     "half" records, for every grid traversal on the CPU and never on CUDA (the row walk already skips the cells
     beyond a warp's balls) nor in a dense traversal; "unit" records otherwise and for several queries per thread;
-    runs of records from CHUNK_REACH and over one cell."""
+    runs of records from CHUNK_REACH (per device kind) and over one cell."""
     v = _k.ball_variant
     for reach in (1.0, 2.0, 8.0, 40.0):
         assert v("grid", 1, reach, cuda=False)["prefilter"]
@@ -175,8 +178,10 @@ def test_ball_variant_rule():
             chosen = v("grid", per_thread, reach)
             assert not chosen["prefilter"] and chosen["form"] == "unit"
     assert v("grid", 4, 2.0, cuda=False)["form"] == "unit"
-    assert not v("grid", 1, 0.99 * _k.CHUNK_REACH)["chunks"]
-    assert v("grid", 1, _k.CHUNK_REACH)["chunks"]
+    for cuda in (False, True):
+        reach = _k.CHUNK_REACH["cuda" if cuda else "cpu"]
+        assert not v("grid", 1, 0.99 * reach, cuda=cuda)["chunks"]
+        assert v("grid", 1, reach, cuda=cuda)["chunks"]
     assert v("grid", 1, 2.0, one_cell=True)["chunks"]
 
 
@@ -245,8 +250,9 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, 
     """A mesh whose edges span 0.1 to 3 units (a cylinder's sides and rings) is traversed by the ball kernels in
     edge-length tiers (after the first, each through the grid or, when it has few pairs, densely); Eqs. (1)-(2)
     (unweighted, where a long edge far from its midpoint still counts) equal the dense float64 reference for every
-    strategy."""
+    strategy (with the tiers, not pieces of the edges: PIECES off)."""
     monkeypatch.setattr(_pairs, "DENSE_TIER_PAIRS", {"cuda": dense_tier_pairs, "cpu": dense_tier_pairs})
+    monkeypatch.setattr(_pairs, "PIECES", False)
     tm = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=48)
     mesh = vw.load_mesh(tm)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
@@ -269,10 +275,13 @@ def test_long_edges_are_traversed_in_tiers(cuda_launch_shape, dense_tier_pairs, 
             np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1 {s}, r={r}")
 
 
-def test_first_tier_takes_all_edges_when_balls_barely_grow(device):
+@pytest.mark.parametrize("pieces", [False, True], ids=["tiers", "pieces"])
+def test_first_tier_takes_all_edges_when_balls_barely_grow(pieces, monkeypatch, device):
     """An icosphere with one vertex pulled out (its edges up to ~1.7 mean lengths, just past the first tier): at a
     radius of many edge lengths the longest edge widens the balls by under TIER_GROW, so one traversal takes every
-    edge; at one edge length it takes tiers. Both equal the float64 reference of Eqs. (1)-(2)."""
+    edge whole; at one edge length it takes tiers, or pieces of the edges (PIECES). Both equal the float64 reference
+    of Eqs. (1)-(2)."""
+    monkeypatch.setattr(_pairs, "PIECES", pieces)
     tm = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
     v = tm.vertices.copy()
     v[0] *= 1.2
@@ -288,6 +297,7 @@ def test_first_tier_takes_all_edges_when_balls_barely_grow(device):
         b = _pairs.bounds(x, tau, f.length)
         plans = _pairs.ball_plans(x, tau, f.mid, f.length, b, "grid")
         assert (len(plans) > 1) == tiers, (mult, len(plans))
+        assert _pairs.uses_pieces("grid", b) == (tiers and pieces)
         num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices[idx], r, None)
         H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy="grid")[0].numpy()
         np.testing.assert_allclose(H[idx], num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l")
@@ -298,8 +308,9 @@ def test_first_tier_takes_all_edges_when_balls_barely_grow(device):
 def test_later_tiers_take_fewer_splits(dense_tier_pairs, busy, monkeypatch, device):
     """Splits that follow each traversal's expected work (as on a GPU): the long-edge tiers of the cylinder take fewer
     than the first, add their partial sums to its first rows, and Eqs. (1)-(2) still equal the float64 reference.
-    Busy (several queries per thread) or light (one), every tier like the first."""
+    Busy (several queries per thread) or light (one), every tier like the first (tiers, not pieces: PIECES off)."""
     monkeypatch.setattr(_pairs, "DENSE_TIER_PAIRS", {"cuda": dense_tier_pairs, "cpu": dense_tier_pairs})
+    monkeypatch.setattr(_pairs, "PIECES", False)
     monkeypatch.setattr(_pairs, "launch_shape", lambda device, count, per_thread=1, work=0.0:
                         (32 * per_thread, int(np.clip(work / 20.0, 1, 6))))
     monkeypatch.setattr(_pairs, "queries_per_thread",
@@ -321,6 +332,95 @@ def test_later_tiers_take_fewer_splits(dense_tier_pairs, busy, monkeypatch, devi
         np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={r}")
         got = vw.integrated_mean_curvature(mesh, r, device=device, strategy="grid").numpy()
         np.testing.assert_allclose(got, 0.5 * num, rtol=2e-4, atol=1e-5, err_msg=f"Eq. 1, r={r}")
+
+
+def _cylinder(scale: float):
+    """A cylinder of radius ``scale`` whose sides are single edges 3 x ``scale`` long and whose rings' edges are
+    short: edges of 0.1 to 3 x ``scale``."""
+    tm = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=48)
+    tm.vertices *= scale
+    return vw.load_mesh(tm)
+
+
+@pytest.mark.parametrize("scale", [0.15, 500.0])
+def test_pieces_tile_every_edge(scale, device):
+    """piece_plan (kernels.vnc.piece_counts, piece_keys, pack_piece_sources) against NumPy: edge j is cut into
+    ceil(L_j / P) pieces (float32, as on the device), the pieces' intervals ``[-b, a]`` along the edge's unit direction
+    from its midpoint meet end to end from ``-L_j / 2`` to ``L_j / 2``, none longer than P, every record holds its
+    edge's midpoint, direction, angle and normal, each piece sits in the grid cell its sorted position says (its
+    centre within that cell), the slots past the last piece hold nothing, and the host's capacity is enough."""
+    mesh = _cylinder(scale)
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    tau = wp.full(mesh.num_vertices, 0.4 * scale, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, tau, f.length)
+    assert _pairs.uses_pieces("grid", b)
+    cells, groups, pieces = _pairs.piece_plan(x, tau, x, f.edges, f.length, b, "grid")
+    seg_m, seg_h, val = (wp.empty(pieces.capacity, dtype=wp.vec4, device=device) for _ in range(3))
+    wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
+              inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
+                      f.normal], outputs=[seg_m, seg_h, val], device=device)
+    L = f.length.numpy()
+    P = np.float32(pieces.length)
+    k = np.maximum(np.ceil(L * (np.float32(1.0) / P)), 1).astype(int)
+    np.testing.assert_array_equal(pieces.counts.numpy(), k)
+    assert k.max() > 1 and (k == 1).any()
+    first = cells.first.numpy()
+    n = int(first[-1])
+    assert n == k.sum() and pieces.capacity == n  # capacity=None: the count read back
+    assert _pairs.piece_capacity(np.sort(L), pieces.length) >= n
+    order = cells.order.numpy()
+    edge = pieces.piece_edge.numpy()[order[:n]]
+    sm, sh, sv = seg_m.numpy()[:n], seg_h.numpy()[:n], val.numpy()[:n]
+    ev = f.edges.numpy()
+    xa, xb = mesh.vertices[ev[:, 0]].astype(np.float64), mesh.vertices[ev[:, 1]].astype(np.float64)
+    tol = 1e-6 * scale
+    np.testing.assert_allclose(sm[:, :3], (0.5 * (xa + xb))[edge], atol=tol)
+    np.testing.assert_allclose(sh[:, :3], ((xb - xa) / np.linalg.norm(xb - xa, axis=1)[:, None])[edge], atol=1e-6)
+    np.testing.assert_array_equal(sv[:, 0], f.angle.numpy()[edge])
+    np.testing.assert_array_equal(sv[:, 1:], f.normal.numpy()[edge])
+    assert (sm[:, 3] + sh[:, 3] <= P * (1 + 1e-5)).all()
+    for j in range(len(L)):
+        a, bb = sm[edge == j, 3], sh[edge == j, 3]
+        s_ = np.argsort(-bb)
+        a, bb = a[s_], bb[s_]
+        assert len(a) == k[j]
+        np.testing.assert_allclose([-bb[0], a[-1]], [-0.5 * L[j], 0.5 * L[j]], atol=tol)
+        np.testing.assert_array_equal(a[:-1], -bb[1:])  # end to end, no gap or overlap
+    # each piece's centre inside the cell of its sorted position
+    centre = sm[:, :3].astype(np.float64) + sh[:, :3] * (0.5 * (sm[:, 3] - sh[:, 3]))[:, None]
+    cell = np.searchsorted(first, np.arange(n), side="right") - 1
+    dims = np.array(tuple(cells.dims))
+    cz, rest = np.divmod(cell, dims[0] * dims[1])
+    cy, cx = np.divmod(rest, dims[0])
+    lo = np.asarray(b.lo) + np.stack([cx, cy, cz], 1) / cells.inv_h
+    assert (centre >= lo - tol).all() and (centre <= lo + 1.0 / cells.inv_h + tol).all()
+    assert (pieces.piece_edge.numpy()[order[n:]] == -1).all()
+
+
+@pytest.mark.parametrize("scale", [0.15, 500.0])
+@pytest.mark.parametrize("kappa", [None, 6.0])
+def test_pieces_match_float64(scale, kappa, device):
+    """VNC-hard and Eq. (1) through pieces of the edges (the cylinder's sides are 30 mean edge lengths long), with
+    the host's capacity (a scalar radius) and the device's count (per-vertex radii), equal the float64 dense
+    reference on trimesh's segment/ball lengths, and trimesh's own measure of Eq. (1). On the CPU each thread walks
+    its own ball's box, so a pad short of half a piece misses edges (unweighted: a 0.2-piece pad fails here)."""
+    mesh = _cylinder(scale)
+    tm = mesh.to_trimesh()
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    for r in (0.25 * scale, 0.6 * scale):
+        b = _pairs.bounds(x, wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device), f.length)
+        assert _pairs.uses_pieces("grid", b)
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, kappa)
+        for tau in (r, wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)):
+            H = vw.vnc_hard(mesh, tau, kappa=kappa, device=device, strategy="grid")[0].numpy()
+            np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={r / scale} x {scale}")
+        if kappa is None:
+            pts = mesh.vertices[::5]
+            got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
+            ref = trimesh.curvature.discrete_mean_curvature_measure(tm, pts, r)
+            np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max())
 
 
 def test_threads_with_far_apart_balls(cuda_launch_shape, device):

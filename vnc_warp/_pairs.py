@@ -20,9 +20,10 @@ afterwards, so every strategy is deterministic. A busy traversal (:data:`BUSY_SO
 more splits and several queries per thread (:func:`queries_per_thread`), so that each source it reads serves all of
 them. Scratch buffers come from a :class:`Pool` and the queries' Morton order is kept with the mesh: both only save
 host time (as does :mod:`vnc_warp._replay`, which replays repeated calls from captured graphs). The ball kernels
-(Eqs. 1-2) reach an edge from up to half its length beyond the radius, so they traverse the edges in tiers
-of similar length (:func:`ball_plans`, one sort for all of them): a few long edges, common in scans, do not widen
-every query's box, and the tiers of few of them are tested against every query instead, in one traversal.
+(Eqs. 1-2) reach an edge from up to half its length beyond the radius, so that a few long edges, common in scans,
+would widen every query's box: a single-scale traversal cuts the edges into pieces of at most a few mean edge lengths
+(:func:`piece_plan`), the multi-scale one traverses them in tiers of similar length (:func:`ball_plans`, one sort for
+all of them; the tiers of few edges tested against every query instead, in one traversal).
 """
 
 from __future__ import annotations
@@ -500,6 +501,103 @@ BUSY_BALL_CELL = 1.0
 DENSE_TIER_PAIRS = {"cuda": 1 << 26, "cpu": 1 << 16}
 
 
+# A single-scale ball traversal through the grid, on a mesh whose longest edge would widen every ball (where
+# ball_plans takes edge-length tiers), traverses pieces of the edges instead (piece_plan): every edge cut into equal
+# pieces no longer than piece_length, each sorted into the grid by its centre, so that one traversal with a pad of
+# half a piece finds them all. On an H200 VNC-hard took 22-32 % less time than with tiers at 2-4 mean edge lengths on
+# nefertiti and koala (koala 4 l: 0.50 -> 0.38 ms), 14 % less at 8-16, 8-9 % at 32; 11-14 % less at 2-4 on their
+# subdivisions to 200k and 800k vertices, 2-5 % at 8-16. On the CPU (one thread) 0-18 % less at 2-8.
+PIECES = True
+# The piece length in mean edge lengths for balls of radius r (in mean edge lengths):
+# max(PIECE[0], min(PIECE[1], r / 2), r / 4). Shorter pieces widen the balls less, longer ones are fewer; measured on
+# an H200 (nefertiti, koala and their subdivisions to 200k and 800k vertices, pieces of 1-8 edge lengths), the best
+# were 1.5 at 2 edge lengths, 2 at 4-8, a quarter of the radius from 16 up.
+PIECE = (1.5, 2.0)
+
+
+@dataclass
+class Pieces:
+    """The pieces of the edges (:func:`kernels.vnc.piece_keys`): ``counts[j]`` pieces of edge ``j`` (at most
+    ``length`` long), sorted slot ``i`` holding piece ``piece_index[s]`` of edge ``piece_edge[s]``, ``s =
+    cells.order[i]``; ``capacity`` slots in all, those past the last piece sorted last with ``piece_edge = -1``."""
+
+    counts: wp.array
+    piece_edge: wp.array
+    piece_index: wp.array
+    capacity: int
+    length: float
+
+
+def uses_pieces(strategy: str, b: Bounds) -> bool:
+    """Whether a single-scale ball traversal (``strategy`` "grid" or "dense") takes pieces of the edges
+    (:func:`piece_plan`) instead of edge-length tiers (:func:`ball_plans`): on a grid, when the longest edge would
+    widen the balls (the tiers' rule; :data:`PIECES`)."""
+    return PIECES and strategy == "grid" and b.lmean > 0 and b.lmax > _first_tier(b)
+
+
+def _first_tier(b: Bounds) -> float:
+    """The upper edge length of the first tier of :func:`ball_plans`: every edge when that widens the balls (radius +
+    half the longest edge) by at most :data:`TIER_GROW`."""
+    return max(TIER_BASE * b.lmean, 2.0 * ((1.0 + TIER_GROW) * (b.rmean + 0.5 * TIER_BASE * b.lmean) - b.rmean))
+
+
+def piece_length(b: Bounds) -> float:
+    """The longest piece of an edge in a ball traversal of :func:`piece_plan` (mesh units, see :data:`PIECE`)."""
+    r = ball_reach(b)
+    return b.lmean * max(PIECE[0], min(PIECE[1], 0.5 * r), 0.25 * r)
+
+
+def piece_capacity(lengths: np.ndarray, piece: float) -> int:
+    """Slots for the pieces of edges of host ``lengths`` (float32, as on the device, where float32 rounding may make
+    them a part in 1e6 longer): at least the device's count of :func:`kernels.vnc.piece_counts`."""
+    k = np.ceil(lengths.astype(np.float64) * ((1.0 + 1e-5) / piece))
+    return int(np.maximum(k, 1.0).sum()) + 16
+
+
+def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array, length: wp.array, b: Bounds,
+               strategy: str, *, capacity=None, splits: int | None = None, max_per_thread: int = 1,
+               cache: dict | None = None, pool: Pool | None = None) -> tuple[Cells, Groups, Pieces]:
+    """One grid traversal of the ball kernels over pieces of the edges (no longer than :func:`piece_length`):
+    a piece crosses a ball only if its centre is within the radius plus half a piece, whatever the longest edge.
+
+    ``capacity(piece)``: the slots for the pieces (:func:`piece_capacity`), when the lengths are known on the host;
+    None reads the exact count back from the device."""
+    device = points.device
+    ne = length.shape[0]
+    piece = piece_length(b)
+    counts = _empty(pool, device, ne, wp.int32)
+    offsets = _empty(pool, device, ne, wp.int32)
+    wp.launch(_k.piece_counts, dim=ne, inputs=[length, 1.0 / piece], outputs=[counts], device=device,
+              record_tape=False)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    if capacity is None:
+        n = int(offsets[ne - 1:].numpy()[0] + counts[ne - 1:].numpy()[0])
+    else:
+        n = int(capacity(piece))
+    # float32 rounding may leave a piece a part in 1e6 longer than `piece`
+    pad = 0.5 * min(piece, b.lmax) * (1.0 + 1e-5)
+    h, work = grid_cell(b, b.rmean + pad, n, device, max_per_thread, BUSY_BALL_CELL)
+    dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
+    dims = wp.vec3i(*[int(d) for d in dims_np])
+    num_cells = int(np.prod(dims_np))
+    bits, fine_bits = _fine_bits(num_cells + 1, chunked(strategy, b, num_cells == 1))
+    keys = _empty(pool, device, 2 * n, wp.int32)
+    values = _empty(pool, device, 2 * n, wp.int32)
+    piece_edge = _empty(pool, device, n, wp.int32)
+    piece_index = _empty(pool, device, n, wp.int32)
+    cell_counts = _zeros(pool, device, num_cells + 1, wp.int32)
+    origin = wp.vec3(*b.lo)
+    wp.launch(_k.piece_keys, dim=n, inputs=[x, edges, counts, offsets, origin, 1.0 / h, dims, fine_bits],
+              outputs=[keys, values, piece_edge, piece_index, cell_counts], device=device, record_tape=False)
+    wp.utils.radix_sort_pairs(keys, values, n, end_bit=bits + fine_bits)
+    first = _empty(pool, device, num_cells + 1, wp.int32)
+    wp.utils.array_scan(cell_counts, first, inclusive=False)
+    cells = Cells(values[:n], first, origin, 1.0 / h, dims)
+    groups = _groups(points, radius, [pad], [cells], b, work, splits=splits, max_per_thread=max_per_thread,
+                     cache=cache, pool=pool)[0]
+    return cells, groups, Pieces(counts, piece_edge, piece_index, n, piece)
+
+
 def ball_reach(b: Bounds) -> float:
     """The mean ball radius of a ball traversal in mean edge lengths (:func:`kernels.vnc.ball_variant`)."""
     return b.rmean / max(b.lmean, 1e-30)
@@ -524,7 +622,7 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     """
     # the first tier takes every edge when that widens its balls by at most TIER_GROW (the other tiers' launches
     # would cost more than the few extra candidates)
-    first_hi = max(TIER_BASE * b.lmean, 2.0 * ((1.0 + TIER_GROW) * (b.rmean + 0.5 * TIER_BASE * b.lmean) - b.rmean))
+    first_hi = _first_tier(b)
     if strategy == "dense" or b.lmax <= first_hi:
         pad = 0.5 * b.lmax
         # (the order only speeds the chunked kernel up: a grid of one cell, a tiny mesh's, may read unordered runs)

@@ -417,23 +417,39 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
         wp.launch(_k.normalize_sums, dim=P, inputs=outputs[:3], outputs=outputs[3:], device=device)
         return outputs
     E = f.mid.shape[0]
-    b = _host_bounds(mesh, x, radius_stats, lengths=True) or _pairs.bounds(x, radius, f.length)
+    host = _host_bounds(mesh, x, radius_stats, lengths=True)
+    b = host or _pairs.bounds(x, radius, f.length)
     # an edge crosses the ball only if its midpoint is within radius + L / 2
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
-    plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, max_per_thread=_k.QB,
-                              cache=mesh._cache if points is x else None, pool=pool,
-                              tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
-    groups = plans[0][1]
+    reach = _pairs.ball_reach(b)
+    cache = mesh._cache if points is x else None
+    if _pairs.uses_pieces(concrete, b):
+        # pieces of the edges, in "unit" records (the only form that holds a piece)
+        capacity = None if host is None else (lambda piece: mesh._memo(
+            ("piece_capacity", piece), lambda: _pairs.piece_capacity(_interior_lengths(mesh), piece)))
+        cells, groups, pieces = _pairs.piece_plan(points, radius, x, f.edges, f.length, b, concrete, capacity=capacity,
+                                                  max_per_thread=_k.QB, cache=cache, pool=pool)
+        plans = [(cells, groups)]
+        variants = [dict(_k.ball_variant(concrete, groups.per_thread, reach, tuple(cells.dims) == (1, 1, 1),
+                                         device.is_cuda), form="unit")]
+        seg_m, seg_h, val = (pool.empty(pieces.capacity, wp.vec4) for _ in range(3))
+        wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
+                  inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
+                          f.normal], outputs=[seg_m, seg_h, val], device=device, record_tape=False)
+    else:
+        plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, max_per_thread=_k.QB, cache=cache,
+                                  pool=pool,
+                                  tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
+        groups = plans[0][1]
+        variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1), device.is_cuda)
+                    for c, _ in plans]
+        # every traversal reads the edges in one sorted order (ball_plans)
+        seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool, form=variants[0]["form"])
     ns = groups.splits
     parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
-    reach = _pairs.ball_reach(b)
-    variants = [_k.ball_variant(concrete, groups.per_thread, reach, tuple(c.dims) == (1, 1, 1), device.is_cuda)
-                for c, _ in plans]
     variant = variants[0]
-    # every traversal reads the edges in one sorted order (ball_plans)
-    seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool, form=variant["form"])
     chunked = [cells for (cells, _), v in zip(plans, variants) if v["chunks"]]
-    nchunks = -(-E // int(_k.CHUNK)) if chunked else 0
+    nchunks = -(-seg_m.shape[0] // int(_k.CHUNK)) if chunked else 0
     chunk_lo, chunk_hi = (pool.empty(nchunks, wp.vec3) for _ in range(2))
     if nchunks:
         # the boxes of the runs the chunked traversals read, from the first record of the first of them (all, or
