@@ -12,8 +12,10 @@ The knobs (module attributes, set for the run and restored after):
 * ``spread``: the per-thread box threshold (``vnc_warp._pairs.SPREAD``);
 * ``fine``: VNC-hard's Morton bits ordering the edges within a cell (``vnc_warp._pairs.FINE_BITS``);
 * ``bcell``: VNC-hard's cell size in a busy traversal (``vnc_warp._pairs.BUSY_BALL_CELL``);
-* ``tier``: VNC-hard's first edge-length tier in mean edge lengths (``vnc_warp._pairs.TIER_BASE``);
-* ``kernel``: VNC-hard's kernel variant (``BALL_KERNELS`` below, set as ``vnc_warp.kernels.vnc.BALL_VARIANT``).
+* ``tier``: VNC-hard's first edge-length tier in mean edge lengths (``vnc_warp._pairs.TIER_BASE``): with pieces of
+  the edges (``vnc_warp._pairs.PIECES``), the longest edge that needs none;
+* ``kernel``: VNC-hard's kernel variant (``BALL_KERNELS`` below, set as ``vnc_warp.kernels.vnc.BALL_VARIANT``): a
+  variant of "half" records takes edge-length tiers, since only "unit" records hold pieces of edges.
 
 Every setting gives the same sums (the tests check all of them against the BVH); only the time differs. The
 table prints the median wall time of a synchronized call per setting and scale, and the best setting per scale.

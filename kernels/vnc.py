@@ -1638,18 +1638,20 @@ def chunk_boxes(
     seg_h: wp.array(dtype=wp.vec4),
     unit: int,
     start: wp.array(dtype=int),
+    end: wp.array(dtype=int),
     lo: wp.array(dtype=wp.vec3),
     hi: wp.array(dtype=wp.vec3),
 ):
     """Bounding box of the edges of sorted records ``CHUNK c .. CHUNK (c + 1) - 1`` (both ends of each), from the
-    records of :func:`pack_ball_sources` (``unit``: of the "unit" form), for the chunks that hold records from
-    ``start[0]`` on (those the chunked traversals read: all, or a dense bucket of long edges sorted last). The loop
-    has a fixed trip count, so it unrolls and all of a thread's reads are in flight together (there are few
-    threads)."""
+    records of :func:`pack_ball_sources` or :func:`pack_piece_sources` (``unit``: of the "unit" form), for the chunks
+    that hold records from ``start[0]`` on (those the chunked traversals read: all, or a dense bucket of long edges
+    sorted last) up to ``end[-1]`` (the last traversal's cell bounds: the records past it, slots with no piece, are
+    left out). The loop has a fixed trip count, so it unrolls and all of a thread's reads are in flight together
+    (there are few threads)."""
     c = wp.tid()
     if (c + 1) * CHUNK <= start[0]:
         return
-    n = seg_m.shape[0]
+    n = end[end.shape[0] - 1]
     blo = wp.vec3(1.0e30)
     bhi = wp.vec3(-1.0e30)
     for k in range(CHUNK):

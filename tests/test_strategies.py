@@ -398,26 +398,74 @@ def test_pieces_tile_every_edge(scale, device):
     assert (pieces.piece_edge.numpy()[order[n:]] == -1).all()
 
 
-@pytest.mark.parametrize("scale", [0.15, 500.0])
-@pytest.mark.parametrize("kappa", [None, 6.0])
-def test_pieces_match_float64(scale, kappa, device):
-    """VNC-hard and Eq. (1) through pieces of the edges (the cylinder's sides are 30 mean edge lengths long), with
-    the host's capacity (a scalar radius) and the device's count (per-vertex radii), equal the float64 dense
-    reference on trimesh's segment/ball lengths, and trimesh's own measure of Eq. (1). On the CPU each thread walks
-    its own ball's box, so a pad short of half a piece misses edges (unweighted: a 0.2-piece pad fails here)."""
-    mesh = _cylinder(scale)
-    tm = mesh.to_trimesh()
+def _spiky(scale: float):
+    """An icosphere of radius ``scale`` (mean edge ~0.1 ``scale``) with every 40th vertex pulled out to 2.5 ``scale``:
+    spikes whose edges are up to 7 mean edge lengths long."""
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    v = tm.vertices.copy()
+    v[::40] *= 2.5
+    return vw.load_mesh(trimesh.Trimesh(v * scale, tm.faces, process=False))
+
+
+def _piece_records(mesh, r, device):
+    """piece_plan of the mesh's vertices at radius ``r`` and its records (pack_piece_sources)."""
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     f = vw.edge_fields(mesh, positions=x)
-    for r in (0.25 * scale, 0.6 * scale):
-        b = _pairs.bounds(x, wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device), f.length)
-        assert _pairs.uses_pieces("grid", b)
+    tau = wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, tau, f.length)
+    assert _pairs.uses_pieces("grid", b)
+    cells, groups, pieces = _pairs.piece_plan(x, tau, x, f.edges, f.length, b, "grid")
+    seg_m, seg_h, val = (wp.empty(pieces.capacity, dtype=wp.vec4, device=device) for _ in range(3))
+    wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
+              inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
+                      f.normal], outputs=[seg_m, seg_h, val], device=device)
+    return cells, pieces, seg_m, seg_h
+
+
+@pytest.mark.parametrize("scale", [0.15, 500.0])
+def test_chunk_boxes_hold_every_piece(scale, device):
+    """kernels.vnc.chunk_boxes over the unit records of pieces (a piece ``m + u d``, ``u`` in ``[-b, a]``, a != b off
+    the edge's middle) equals the NumPy box of both ends of every piece in each run of CHUNK sorted records, and
+    leaves out the slots past the last piece."""
+    mesh = _spiky(scale)
+    cells, pieces, seg_m, seg_h = _piece_records(mesh, 2.0 * mesh.mean_edge_length, device)
+    n = int(cells.first.numpy()[-1])
+    assert pieces.counts.numpy().max() >= 5
+    chunk = int(_k.CHUNK)
+    nchunks = -(-pieces.capacity // chunk)
+    lo, hi = (wp.empty(nchunks, dtype=wp.vec3, device=device) for _ in range(2))
+    wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, 1, cells.first, cells.first], outputs=[lo, hi],
+              device=device)
+    sm, sh = seg_m.numpy()[:n].astype(np.float64), seg_h.numpy()[:n].astype(np.float64)
+    assert (np.abs(sm[:, 3] - sh[:, 3]) > 1e-3 * sm[:, 3]).any()
+    ends = np.stack([sm[:, :3] + sh[:, :3] * sm[:, 3:], sm[:, :3] - sh[:, :3] * sh[:, 3:]], 1)
+    for c in range(-(-n // chunk)):
+        e = ends[c * chunk:(c + 1) * chunk].reshape(-1, 3)
+        np.testing.assert_allclose(lo.numpy()[c], e.min(0), atol=1e-6 * scale, err_msg=f"run {c}")
+        np.testing.assert_allclose(hi.numpy()[c], e.max(0), atol=1e-6 * scale, err_msg=f"run {c}")
+
+
+@pytest.mark.parametrize("scale", [0.15, 500.0])
+@pytest.mark.parametrize("kappa", [None, 6.0])
+def test_pieces_match_float64(scale, kappa, monkeypatch, device):
+    """VNC-hard and Eq. (1) through pieces of the edges (spikes up to 7 mean edge lengths long, cut into up to 4-5
+    pieces), with the host's capacity (a scalar radius) and the device's count (per-vertex radii), equal the float64
+    dense reference on trimesh's segment/ball lengths, and trimesh's own measure of Eq. (1). Fine cells (a tenth of
+    the reach) and, on the CPU, each thread walking its own ball's box: a pad short of half a piece misses pieces
+    (0.3 of a piece fails here, unweighted; 0.4 hides in the boxes' rounding to whole cells)."""
+    monkeypatch.setattr(_pairs, "CELL_FRACTION", 0.1)
+    monkeypatch.setattr(_pairs, "CELLS_PER_SOURCE", 1000)
+    mesh = _spiky(scale)
+    tm = mesh.to_trimesh()
+    for mult in (2.0, 4.0):
+        r = mult * mesh.mean_edge_length
+        assert _piece_records(mesh, r, device)[1].counts.numpy().max() >= 4
         num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, kappa)
         for tau in (r, wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)):
             H = vw.vnc_hard(mesh, tau, kappa=kappa, device=device, strategy="grid")[0].numpy()
-            np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={r / scale} x {scale}")
+            np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l x {scale}")
         if kappa is None:
-            pts = mesh.vertices[::5]
+            pts = mesh.vertices[::3]
             got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
             ref = trimesh.curvature.discrete_mean_curvature_measure(tm, pts, r)
             np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max())

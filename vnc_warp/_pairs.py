@@ -531,8 +531,10 @@ class Pieces:
 def uses_pieces(strategy: str, b: Bounds) -> bool:
     """Whether a single-scale ball traversal (``strategy`` "grid" or "dense") takes pieces of the edges
     (:func:`piece_plan`) instead of edge-length tiers (:func:`ball_plans`): on a grid, when the longest edge would
-    widen the balls (the tiers' rule; :data:`PIECES`)."""
-    return PIECES and strategy == "grid" and b.lmean > 0 and b.lmax > _first_tier(b)
+    widen the balls (the tiers' rule; :data:`PIECES`), unless the ball kernels are set to "half" records
+    (``kernels.vnc.BALL_VARIANT``, as ``bench.tune`` does), which cannot hold a piece."""
+    return (PIECES and strategy == "grid" and _k.BALL_VARIANT["form"] != "half" and b.lmean > 0
+            and b.lmax > _first_tier(b))
 
 
 def _first_tier(b: Bounds) -> float:
@@ -580,7 +582,7 @@ def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array,
     dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
     dims = wp.vec3i(*[int(d) for d in dims_np])
     num_cells = int(np.prod(dims_np))
-    bits, fine_bits = _fine_bits(num_cells + 1, chunked(strategy, b, num_cells == 1))
+    bits, fine_bits = _fine_bits(num_cells + 1, chunked(strategy, b, num_cells == 1, device))
     keys = _empty(pool, device, 2 * n, wp.int32)
     values = _empty(pool, device, 2 * n, wp.int32)
     piece_edge = _empty(pool, device, n, wp.int32)
@@ -603,10 +605,10 @@ def ball_reach(b: Bounds) -> float:
     return b.rmean / max(b.lmean, 1e-30)
 
 
-def chunked(strategy: str, b: Bounds, one_cell: bool) -> bool:
-    """Whether a ball traversal (``strategy`` "grid" or "dense", over ``one_cell`` or more) tests runs of sorted
-    edges as a whole (:func:`kernels.vnc.ball_variant`)."""
-    return bool(_k.ball_variant(strategy, 1, ball_reach(b), one_cell)["chunks"])
+def chunked(strategy: str, b: Bounds, one_cell: bool, device: wp.Device) -> bool:
+    """Whether a ball traversal (``strategy`` "grid" or "dense", over ``one_cell`` or more) on ``device`` tests runs
+    of sorted edges as a whole (:func:`kernels.vnc.ball_variant`)."""
+    return bool(_k.ball_variant(strategy, 1, ball_reach(b), one_cell, device.is_cuda)["chunks"])
 
 
 def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.array, b: Bounds, strategy: str,
@@ -626,7 +628,7 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     if strategy == "dense" or b.lmax <= first_hi:
         pad = 0.5 * b.lmax
         # (the order only speeds the chunked kernel up: a grid of one cell, a tiny mesh's, may read unordered runs)
-        fine = chunked(strategy, b, strategy == "dense")
+        fine = chunked(strategy, b, strategy == "dense", points.device)
         return [plan(points, radius, mid, b, strategy, b.rmean + pad, pad, splits=splits,
                      max_per_thread=max_per_thread, cache=cache, pool=pool, fine=fine, busy_cell=BUSY_BALL_CELL)]
     bounds_ = [-1.0]
@@ -648,7 +650,7 @@ def ball_plans(points: wp.array, radius: wp.array, mid: wp.array, length: wp.arr
     hs = [h0 * (b.rmean + p) / (b.rmean + pads[0]) for p in pads]
     # the edges of a cell along a Morton curve only for traversals that test runs of them as a whole
     ext = np.maximum(b.hi - b.lo, 0.0)
-    fine = dense > 0 or any(chunked(strategy, b, tuple(_grid_dims(ext, h)) == (1, 1, 1)) for h in hs)
+    fine = dense > 0 or any(chunked(strategy, b, tuple(_grid_dims(ext, h)) == (1, 1, 1), points.device) for h in hs)
     cells = build_tier_cells(mid, length, b, hs, [hi for _, hi in tiers], slots, pool, fine)
     works = [dense_fraction(b, b.rmean + p, h) * (mid.shape[0] if sizes[t] is None else sizes[t])
              for p, h, t in zip(pads, hs, grid)]

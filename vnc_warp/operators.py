@@ -455,7 +455,8 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
         # the boxes of the runs the chunked traversals read, from the first record of the first of them (all, or
         # only the last ones for a dense bucket of long edges); few threads, each a serial loop: blocks of one warp
         # spread them over every multiprocessor
-        wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, int(variant["form"] == "unit"), chunked[0].first],
+        wp.launch(_k.chunk_boxes, dim=nchunks,
+                  inputs=[seg_m, seg_h, int(variant["form"] == "unit"), chunked[0].first, plans[-1][0].first],
                   outputs=[chunk_lo, chunk_hi], device=device, block_dim=32)
     for i, (cells, grp) in enumerate(plans):
         kernel = _k.ball_cells_kernel(grp.per_thread, **variants[i])
