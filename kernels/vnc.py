@@ -686,6 +686,15 @@ def point_stats(
     wp.atomic_add(stats, 9, lsum)
 
 
+@wp.func
+def cell_key(p: wp.vec3, origin: wp.vec3, inv_h: float, dims: wp.vec3i, fine_bits: int):
+    """``(sort key, cell)`` of a source at ``p``: its row-major cell index shifted left by ``fine_bits`` that order a
+    cell's sources along a Morton curve (:func:`fine_code`)."""
+    c = cell_coord(p, origin, inv_h, dims)
+    cell = cell_index(c, dims)
+    return (cell << fine_bits) | fine_code((p - origin) * inv_h, c, fine_bits), cell
+
+
 @wp.kernel(enable_backward=False)
 def cell_keys(
     points: wp.array(dtype=wp.vec3),
@@ -701,10 +710,8 @@ def cell_keys(
     ``fine_bits`` that order a cell's sources along a Morton curve (:func:`fine_code`); ``counts[c]`` (zeroed
     first) += number of sources in cell ``c`` (an exclusive scan of it gives ``first``)."""
     i = wp.tid()
-    q = (points[i] - origin) * inv_h
-    c = cell_coord(points[i], origin, inv_h, dims)
-    cell = cell_index(c, dims)
-    keys[i] = (cell << fine_bits) | fine_code(q, c, fine_bits)
+    key, cell = cell_key(points[i], origin, inv_h, dims, fine_bits)
+    keys[i] = key
     values[i] = i
     wp.atomic_add(counts, cell, 1)
 
@@ -1220,11 +1227,8 @@ def piece_keys(
             slot = offsets[i] + c
             if slot < capacity:
                 m, d, a, b = edge_piece(xa, xb, c, k)
-                p = m + d * (0.5 * (a - b))
-                q = (p - origin) * inv_h
-                cc = cell_coord(p, origin, inv_h, dims)
-                cell = cell_index(cc, dims)
-                keys[slot] = (cell << fine_bits) | fine_code(q, cc, fine_bits)
+                key, cell = cell_key(m + d * (0.5 * (a - b)), origin, inv_h, dims, fine_bits)
+                keys[slot] = key
                 values[slot] = slot
                 piece_edge[slot] = i
                 piece_index[slot] = c

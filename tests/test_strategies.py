@@ -342,6 +342,31 @@ def _cylinder(scale: float):
     return vw.load_mesh(tm)
 
 
+def _spiky(scale: float):
+    """An icosphere of radius ``scale`` (mean edge ~0.1 ``scale``) with every 40th vertex pulled out to 2.5 ``scale``:
+    spikes whose edges are up to 7 mean edge lengths long."""
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    v = tm.vertices.copy()
+    v[::40] *= 2.5
+    return vw.load_mesh(trimesh.Trimesh(v * scale, tm.faces, process=False))
+
+
+def _piece_records(mesh, r, device):
+    """piece_plan of the mesh's vertices at radius ``r`` and its records (pack_piece_sources):
+    ``(cells, pieces, seg_m, seg_h, val, edge fields, bounds)``."""
+    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+    f = vw.edge_fields(mesh, positions=x)
+    tau = wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)
+    b = _pairs.bounds(x, tau, f.length)
+    assert _pairs.uses_pieces("grid", b)
+    cells, groups, pieces = _pairs.piece_plan(x, tau, x, f.edges, f.length, b, "grid")
+    seg_m, seg_h, val = (wp.empty(pieces.capacity, dtype=wp.vec4, device=device) for _ in range(3))
+    wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
+              inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
+                      f.normal], outputs=[seg_m, seg_h, val], device=device)
+    return cells, pieces, seg_m, seg_h, val, f, b
+
+
 @pytest.mark.parametrize("scale", [0.15, 500.0])
 def test_pieces_tile_every_edge(scale, device):
     """piece_plan (kernels.vnc.piece_counts, piece_keys, pack_piece_sources) against NumPy: edge j is cut into
@@ -350,16 +375,7 @@ def test_pieces_tile_every_edge(scale, device):
     edge's midpoint, direction, angle and normal, each piece sits in the grid cell its sorted position says (its
     centre within that cell), the slots past the last piece hold nothing, and the host's capacity is enough."""
     mesh = _cylinder(scale)
-    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    f = vw.edge_fields(mesh, positions=x)
-    tau = wp.full(mesh.num_vertices, 0.4 * scale, dtype=wp.float32, device=device)
-    b = _pairs.bounds(x, tau, f.length)
-    assert _pairs.uses_pieces("grid", b)
-    cells, groups, pieces = _pairs.piece_plan(x, tau, x, f.edges, f.length, b, "grid")
-    seg_m, seg_h, val = (wp.empty(pieces.capacity, dtype=wp.vec4, device=device) for _ in range(3))
-    wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
-              inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
-                      f.normal], outputs=[seg_m, seg_h, val], device=device)
+    cells, pieces, seg_m, seg_h, val, f, b = _piece_records(mesh, 0.4 * scale, device)
     L = f.length.numpy()
     P = np.float32(pieces.length)
     k = np.maximum(np.ceil(L * (np.float32(1.0) / P)), 1).astype(int)
@@ -398,37 +414,13 @@ def test_pieces_tile_every_edge(scale, device):
     assert (pieces.piece_edge.numpy()[order[n:]] == -1).all()
 
 
-def _spiky(scale: float):
-    """An icosphere of radius ``scale`` (mean edge ~0.1 ``scale``) with every 40th vertex pulled out to 2.5 ``scale``:
-    spikes whose edges are up to 7 mean edge lengths long."""
-    tm = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    v = tm.vertices.copy()
-    v[::40] *= 2.5
-    return vw.load_mesh(trimesh.Trimesh(v * scale, tm.faces, process=False))
-
-
-def _piece_records(mesh, r, device):
-    """piece_plan of the mesh's vertices at radius ``r`` and its records (pack_piece_sources)."""
-    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    f = vw.edge_fields(mesh, positions=x)
-    tau = wp.full(mesh.num_vertices, r, dtype=wp.float32, device=device)
-    b = _pairs.bounds(x, tau, f.length)
-    assert _pairs.uses_pieces("grid", b)
-    cells, groups, pieces = _pairs.piece_plan(x, tau, x, f.edges, f.length, b, "grid")
-    seg_m, seg_h, val = (wp.empty(pieces.capacity, dtype=wp.vec4, device=device) for _ in range(3))
-    wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
-              inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
-                      f.normal], outputs=[seg_m, seg_h, val], device=device)
-    return cells, pieces, seg_m, seg_h
-
-
 @pytest.mark.parametrize("scale", [0.15, 500.0])
 def test_chunk_boxes_hold_every_piece(scale, device):
     """kernels.vnc.chunk_boxes over the unit records of pieces (a piece ``m + u d``, ``u`` in ``[-b, a]``, a != b off
     the edge's middle) equals the NumPy box of both ends of every piece in each run of CHUNK sorted records, and
     leaves out the slots past the last piece."""
     mesh = _spiky(scale)
-    cells, pieces, seg_m, seg_h = _piece_records(mesh, 2.0 * mesh.mean_edge_length, device)
+    cells, pieces, seg_m, seg_h = _piece_records(mesh, 2.0 * mesh.mean_edge_length, device)[:4]
     n = int(cells.first.numpy()[-1])
     assert pieces.counts.numpy().max() >= 5
     chunk = int(_k.CHUNK)
