@@ -447,6 +447,7 @@ def test_pieces_match_float64(scale, kappa, monkeypatch, device):
     (0.3 of a piece fails here, unweighted; 0.4 hides in the boxes' rounding to whole cells)."""
     monkeypatch.setattr(_pairs, "CELL_FRACTION", 0.1)
     monkeypatch.setattr(_pairs, "CELLS_PER_SOURCE", 1000)
+    monkeypatch.setattr(_pairs, "CPU_PIECES", None)  # pieces sorted per call (test_kept_pieces_serve_every_radius)
     mesh = _spiky(scale)
     tm = mesh.to_trimesh()
     for mult in (2.0, 4.0):
@@ -461,6 +462,43 @@ def test_pieces_match_float64(scale, kappa, monkeypatch, device):
             got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
             ref = trimesh.curvature.discrete_mean_curvature_measure(tm, pts, r)
             np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("cpu_pieces", [None, (1.0, 0.2)], ids=["shipped", "fine-cells"])
+@pytest.mark.parametrize("scale", [0.15, 500.0])
+def test_kept_pieces_serve_every_radius(scale, cpu_pieces, monkeypatch):
+    """On the CPU the pieces of a mesh's own edges are sorted once and kept with it (CPU_PIECES): calls at 1.5, 4 and
+    9 mean edge lengths (the last testing runs of records, CHUNK_REACH) all read the one kept grid, and Eq. (1) at
+    off-vertex centres equals trimesh's measure, VNC-hard at the vertices the float64 reference. With pieces of one
+    edge length in cells of a fifth (a ball's box then hugs it), a pad short of half a piece would miss pieces. The
+    public edge_fields are the caller's own: writing into them changes no later call."""
+    if cpu_pieces is not None:
+        monkeypatch.setattr(_pairs, "CPU_PIECES", cpu_pieces)
+        monkeypatch.setattr(_pairs, "CELLS_PER_SOURCE", 1000)
+    device = wp.get_device("cpu")
+    mesh = _spiky(scale)
+    tm = mesh.to_trimesh()
+    f = vw.edge_fields(mesh, device=device)
+    for a in (f.mid, f.length, f.angle, f.normal):
+        a.zero_()
+    rng = np.random.default_rng(7)
+    pts = mesh.vertices[::4] + rng.normal(scale=0.3 * mesh.mean_edge_length, size=(len(mesh.vertices[::4]), 3))
+    kept = []
+    for mult in (1.5, 4.0, 9.0):
+        r = mult * mesh.mean_edge_length
+        got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
+        ref = trimesh.curvature.discrete_mean_curvature_measure(tm, pts, r)
+        np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max(), err_msg=f"r={mult} l")
+        # unweighted: at a spike's tip every edge's midpoint is 3.5 l away, and the weights of Eq. (2) at 1.5 l
+        # (e^-98) are float32 denormals, 2e-4 off whatever the traversal
+        num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
+        H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy="grid")[0].numpy()
+        np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l")
+        kept.append([v for k, v in mesh._cache.items() if isinstance(k, tuple) and k[0] == "cpu_pieces"])
+    assert len(kept[0]) == 1 and all(len(k) == 1 and k[0][1] is kept[0][0][1] for k in kept)
+    pieces = kept[0][0][1].grid.pieces
+    assert pieces.counts.numpy().max() >= 3 and pieces.length == pytest.approx(
+        _pairs.CPU_PIECES[0] * mesh.mean_edge_length, rel=1e-3)
 
 
 def test_threads_with_far_apart_balls(cuda_launch_shape, device):

@@ -22,8 +22,9 @@ them. Scratch buffers come from a :class:`Pool` and the queries' Morton order is
 host time (as does :mod:`vnc_warp._replay`, which replays repeated calls from captured graphs). The ball kernels
 (Eqs. 1-2) reach an edge from up to half its length beyond the radius, so that a few long edges, common in scans,
 would widen every query's box: a single-scale traversal cuts the edges into pieces of at most a few mean edge lengths
-(:func:`piece_plan`), the multi-scale one traverses them in tiers of similar length (:func:`ball_plans`, one sort for
-all of them; the tiers of few edges tested against every query instead, in one traversal).
+(:func:`piece_plan`; on the CPU device the pieces of a mesh's own edges are sorted once for every radius and kept with
+the mesh, :data:`CPU_PIECES`), the multi-scale one traverses them in tiers of similar length (:func:`ball_plans`, one
+sort for all of them; the tiers of few edges tested against every query instead, in one traversal).
 """
 
 from __future__ import annotations
@@ -513,6 +514,14 @@ PIECES = True
 # an H200 (nefertiti, koala and their subdivisions to 200k and 800k vertices, pieces of 1-8 edge lengths), the best
 # were 1.5 at 2 edge lengths, 2 at 4-8, a quarter of the radius from 16 up.
 PIECE = (1.5, 2.0)
+# On the CPU device (one thread), a single-scale grid traversal of a mesh's own vertices reads pieces of its edges
+# that do not depend on the radius, sorted and packed once and kept with the mesh (as trimesh keeps an R-tree of its
+# edges): CPU_PIECES = (piece, cell) in mean edge lengths, None to sort per call. Per call, the edges' fields, sort and
+# packing cost one thread more than the traversal itself when the queries are few (nefertiti, 2000 of its 50k
+# vertices at 2 l: 9 of 14 ms). Timed on the 2-core CI machine (nefertiti's 2000 points, all of spot, at 2 / 5 / 10 l),
+# pieces and cells of 1-3 by 1-6 edge lengths: (2, 3) was best or within 5 % at every radius but spot's 10 l, 10 %
+# slower than a grid of cells of half the radius sorted for it (one row of the chunked kernel reads more records).
+CPU_PIECES = (2.0, 3.0)
 
 
 @dataclass
@@ -528,13 +537,14 @@ class Pieces:
     length: float
 
 
-def uses_pieces(strategy: str, b: Bounds) -> bool:
+def uses_pieces(strategy: str, b: Bounds, any_length: bool = False) -> bool:
     """Whether a single-scale ball traversal (``strategy`` "grid" or "dense") takes pieces of the edges
     (:func:`piece_plan`) instead of edge-length tiers (:func:`ball_plans`): on a grid, when the longest edge would
-    widen the balls (the tiers' rule; :data:`PIECES`), unless the ball kernels are set to "half" records
+    widen the balls (the tiers' rule; :data:`PIECES`; ``any_length``: whatever the lengths, as the pieces kept with a
+    mesh on the CPU, :data:`CPU_PIECES`), unless the ball kernels are set to "half" records
     (``kernels.vnc.BALL_VARIANT``, as ``bench.tune`` does), which cannot hold a piece."""
     return (PIECES and strategy == "grid" and _k.BALL_VARIANT["form"] != "half" and b.lmean > 0
-            and b.lmax > _first_tier(b))
+            and (any_length or b.lmax > _first_tier(b)))
 
 
 def _first_tier(b: Bounds) -> float:
@@ -556,17 +566,31 @@ def piece_capacity(lengths: np.ndarray, piece: float) -> int:
     return int(np.maximum(k, 1.0).sum()) + 16
 
 
-def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array, length: wp.array, b: Bounds,
-               strategy: str, *, capacity=None, splits: int | None = None, max_per_thread: int = 1,
-               cache: dict | None = None, pool: Pool | None = None) -> tuple[Cells, Groups, Pieces]:
-    """One grid traversal of the ball kernels over pieces of the edges (no longer than :func:`piece_length`):
-    a piece crosses a ball only if its centre is within the radius plus half a piece, whatever the longest edge.
+@dataclass
+class PieceGrid:
+    """The edge side of a traversal over pieces (:func:`piece_grid`): the pieces sorted into ``cells``, the pad that
+    every ball takes (half a piece, float32 slack included) and the cell size's expected candidates per query
+    (``work``, for the radii of the bounds it was made with)."""
+
+    cells: Cells
+    pieces: Pieces
+    pad: float
+    work: float
+
+
+def piece_grid(x: wp.array, edges: wp.array, length: wp.array, b: Bounds, strategy: str, *, piece: float | None = None,
+               cell: float | None = None, fine: bool | None = None, capacity=None, max_per_thread: int = 1,
+               pool: Pool | None = None) -> PieceGrid:
+    """Cut the edges (``x[edges]``, of ``length``) into equal pieces no longer than ``piece`` (default
+    :func:`piece_length`) and sort them by their centres into a grid over ``b``: cells of ``cell`` (capped as in
+    :func:`cell_size`), default :func:`grid_cell` for the reach of ``b``'s radii plus half a piece; ``fine``: a Morton
+    order within each cell (default: when the traversal of ``b``'s radii tests runs, :func:`chunked`).
 
     ``capacity(piece)``: the slots for the pieces (:func:`piece_capacity`), when the lengths are known on the host;
     None reads the exact count back from the device."""
-    device = points.device
+    device = x.device
     ne = length.shape[0]
-    piece = piece_length(b)
+    piece = piece_length(b) if piece is None else float(piece)
     counts = _empty(pool, device, ne, wp.int32)
     offsets = _empty(pool, device, ne, wp.int32)
     wp.launch(_k.piece_counts, dim=ne, inputs=[length, 1.0 / piece], outputs=[counts], device=device,
@@ -578,11 +602,17 @@ def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array,
         n = int(capacity(piece))
     # float32 rounding may leave a piece a part in 1e6 longer than `piece`
     pad = 0.5 * min(piece, b.lmax) * (1.0 + 1e-5)
-    h, work = grid_cell(b, b.rmean + pad, n, device, max_per_thread, BUSY_BALL_CELL)
+    if cell is None:
+        h, work = grid_cell(b, b.rmean + pad, n, device, max_per_thread, BUSY_BALL_CELL)
+    else:
+        h = cell_size(b, float(cell), n, device, fraction=1.0)
+        work = dense_fraction(b, b.rmean + pad, h) * n
     dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
     dims = wp.vec3i(*[int(d) for d in dims_np])
     num_cells = int(np.prod(dims_np))
-    bits, fine_bits = _fine_bits(num_cells + 1, chunked(strategy, b, num_cells == 1, device))
+    if fine is None:
+        fine = chunked(strategy, b, num_cells == 1, device)
+    bits, fine_bits = _fine_bits(num_cells + 1, fine)
     keys = _empty(pool, device, 2 * n, wp.int32)
     values = _empty(pool, device, 2 * n, wp.int32)
     piece_edge = _empty(pool, device, n, wp.int32)
@@ -595,9 +625,27 @@ def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array,
     first = _empty(pool, device, num_cells + 1, wp.int32)
     wp.utils.array_scan(cell_counts, first, inclusive=False)
     cells = Cells(values[:n], first, origin, 1.0 / h, dims)
-    groups = _groups(points, radius, [pad], [cells], b, work, splits=splits, max_per_thread=max_per_thread,
+    return PieceGrid(cells, Pieces(counts, piece_edge, piece_index, n, piece), pad, work)
+
+
+def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array, length: wp.array, b: Bounds,
+               strategy: str, *, capacity=None, splits: int | None = None, max_per_thread: int = 1,
+               cache: dict | None = None, pool: Pool | None = None,
+               grid: PieceGrid | None = None) -> tuple[Cells, Groups, Pieces]:
+    """One grid traversal of the ball kernels over pieces of the edges (no longer than :func:`piece_length`):
+    a piece crosses a ball only if its centre is within the radius plus half a piece, whatever the longest edge.
+
+    ``grid``: the pieces already sorted (:func:`piece_grid`, e.g. kept with the mesh: :data:`CPU_PIECES`), else
+    sorted here for ``b``'s radii (``capacity``: see :func:`piece_grid`). Returns the cells, the groups of the query
+    ``points`` (balls of ``radius`` plus the grid's pad) and the pieces."""
+    if grid is None:
+        grid = piece_grid(x, edges, length, b, strategy, capacity=capacity, max_per_thread=max_per_thread, pool=pool)
+        work = grid.work
+    else:
+        work = dense_fraction(b, b.rmean + grid.pad, 1.0 / grid.cells.inv_h) * grid.pieces.capacity
+    groups = _groups(points, radius, [grid.pad], [grid.cells], b, work, splits=splits, max_per_thread=max_per_thread,
                      cache=cache, pool=pool)[0]
-    return cells, groups, Pieces(counts, piece_edge, piece_index, n, piece)
+    return grid.cells, groups, grid.pieces
 
 
 def ball_reach(b: Bounds) -> float:

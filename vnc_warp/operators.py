@@ -162,8 +162,14 @@ def edge_fields(mesh: Mesh, *, positions: wp.array | None = None, device=None, r
     return _edge_fields(mesh, _positions(mesh, positions, device), requires_grad)
 
 
-def _edge_fields(mesh: Mesh, x: wp.array, requires_grad: bool = False, pool: _pairs.Pool | None = None) -> EdgeFields:
+def _edge_fields(mesh: Mesh, x: wp.array, requires_grad: bool = False, pool: _pairs.Pool | None = None,
+                 keep: bool = False) -> EdgeFields:
+    """The edge fields of positions ``x`` (scratch from ``pool`` unless they need gradients). ``keep``: when ``x`` is
+    the mesh's own vertex array (:func:`_own_vertices`) and no gradient is wanted, computed once and kept with the
+    mesh; the caller then only reads them."""
     device = x.device
+    if keep and not (requires_grad or x.requires_grad) and not device.is_capturing and _own_vertices(mesh, x):
+        return mesh._memo(("edge_fields", str(device)), lambda: _edge_fields(mesh, x))
     edges = _edge_array(mesh, device)
     ne = edges.shape[0]
     rg = requires_grad or x.requires_grad
@@ -395,6 +401,72 @@ def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, posi
     return _pairs.resolve("auto", device, b, b.rmean + 0.5 * b.lmax, V, E)
 
 
+def _own_vertices(mesh: Mesh, x: wp.array) -> bool:
+    """Whether ``x`` is the mesh's own vertex array on its device (:func:`_mesh_vertices`), whose derived arrays
+    may be kept with the mesh."""
+    kept = mesh._cache.get(("vertices", str(x.device)), (None, None))
+    return kept[0] is mesh.vertices and x is kept[1]
+
+
+@dataclass
+class _PieceSources:
+    """Pieces sorted into a grid (:class:`~vnc_warp._pairs.PieceGrid`) and their records for the ball kernels
+    (:func:`kernels.vnc.pack_piece_sources`); ``chunk_lo``, ``chunk_hi``: the boxes of their runs
+    (:func:`kernels.vnc.chunk_boxes`) when kept with them, else None (made per call when a traversal tests runs)."""
+
+    grid: _pairs.PieceGrid
+    seg_m: wp.array
+    seg_h: wp.array
+    val: wp.array
+    chunk_lo: wp.array | None = None
+    chunk_hi: wp.array | None = None
+
+
+def _piece_sources(x: wp.array, f: EdgeFields, grid: _pairs.PieceGrid, pool: _pairs.Pool | None) -> _PieceSources:
+    """The records of the sorted pieces of ``grid`` (scratch from ``pool``; None: new arrays)."""
+    device = x.device
+    n = grid.pieces.capacity
+    seg_m, seg_h, val = (_pairs._empty(pool, device, n, wp.vec4) for _ in range(3))
+    p = grid.pieces
+    wp.launch(_k.pack_piece_sources, dim=n,
+              inputs=[grid.cells.order, p.piece_edge, p.piece_index, p.counts, x, f.edges, f.angle, f.normal],
+              outputs=[seg_m, seg_h, val], device=device, record_tape=False)
+    return _PieceSources(grid, seg_m, seg_h, val)
+
+
+def _kept_pieces(mesh: Mesh, x: wp.array, f: EdgeFields) -> _PieceSources:
+    """The pieces of the mesh's own edges for single-scale ball traversals on the CPU (:data:`_pairs.CPU_PIECES`):
+    sorted once per vertex array and kept with the mesh, whatever the radius (as trimesh keeps an R-tree of its
+    edges), with the boxes of their runs."""
+    piece, cell = _pairs.CPU_PIECES
+    device = x.device
+
+    def build():
+        b = _host_bounds(mesh, x, (0.0, 0.0), lengths=True)
+        grid = _pairs.piece_grid(x, f.edges, f.length, b, "grid", piece=piece * b.lmean, cell=cell * b.lmean,
+                                 fine=True, capacity=lambda p: _pairs.piece_capacity(_interior_lengths(mesh), p))
+        src = _piece_sources(x, f, grid, None)
+        src.chunk_lo, src.chunk_hi = _chunk_boxes(src.seg_m, src.seg_h, True, grid.cells.first, grid.cells.first,
+                                                  None)
+        return src
+
+    return mesh._memo(("cpu_pieces", str(device), piece, cell), build)
+
+
+def _chunk_boxes(seg_m: wp.array, seg_h: wp.array, unit: bool, start: wp.array | None, end: wp.array,
+                 pool: _pairs.Pool | None) -> tuple[wp.array, wp.array]:
+    """The boxes of the runs of :data:`kernels.vnc.CHUNK` records a chunked traversal reads, from the first record
+    ``start[0]`` (None: no traversal tests runs; empty boxes) to ``end[-1]`` (:func:`kernels.vnc.chunk_boxes`)."""
+    device = seg_m.device
+    nchunks = -(-seg_m.shape[0] // int(_k.CHUNK)) if start is not None else 0
+    lo, hi = (_pairs._empty(pool, device, nchunks, wp.vec3) for _ in range(2))
+    if nchunks:
+        # few threads, each a serial loop: blocks of one warp spread them over every multiprocessor
+        wp.launch(_k.chunk_boxes, dim=nchunks, inputs=[seg_m, seg_h, int(unit), start, end], outputs=[lo, hi],
+                  device=device, block_dim=32)
+    return lo, hi
+
+
 def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array | None = None,
                radius_stats=None, pool: _pairs.Pool | None = None, fresh: bool = True):
     """Eqs. (1)-(2) sums per query point: ``(num, den, nsum, H, n)`` (``H``, ``n`` normalized as in Eq. (2)).
@@ -406,7 +478,8 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     if x is None:
         x = _mesh_vertices(mesh, device)
     pool = pool or _pairs.Pool(device, "ball")
-    f = _edge_fields(mesh, x, pool=pool)
+    # on the (one-thread) CPU the mesh's own edges' fields are kept with it, as their pieces are (_kept_pieces)
+    f = _edge_fields(mesh, x, pool=pool, keep=device.is_cpu)
     P = points.shape[0]
     outputs = [_pairs._empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     outputs += [_pairs._empty(None if fresh else pool, device, P, dt) for dt in (wp.float32, wp.vec3)]
@@ -423,20 +496,26 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     concrete = _pairs.resolve(strategy, device, b, b.rmean + 0.5 * b.lmax, P, E)
     reach = _pairs.ball_reach(b)
     cache = mesh._cache if points is x else None
-    if _pairs.uses_pieces(concrete, b):
+    # on the CPU the pieces of the mesh's own edges are kept with it, whatever the radius (_kept_pieces)
+    kept = (device.is_cpu and _pairs.CPU_PIECES is not None and _own_vertices(mesh, x)
+            and _pairs.uses_pieces(concrete, b, any_length=True))
+    if kept or _pairs.uses_pieces(concrete, b):
         # pieces of the edges, in "unit" records (the only form that holds a piece)
-        capacity = None if host is None else (lambda piece: mesh._memo(
-            ("piece_capacity", piece), lambda: _pairs.piece_capacity(_interior_lengths(mesh), piece)))
-        cells, groups, pieces = _pairs.piece_plan(points, radius, x, f.edges, f.length, b, concrete, capacity=capacity,
-                                                  max_per_thread=_k.QB, cache=cache, pool=pool)
+        if kept:
+            src = _kept_pieces(mesh, x, f)
+        else:
+            capacity = None if host is None else (lambda piece: mesh._memo(
+                ("piece_capacity", piece), lambda: _pairs.piece_capacity(_interior_lengths(mesh), piece)))
+            src = _piece_sources(x, f, _pairs.piece_grid(x, f.edges, f.length, b, concrete, capacity=capacity,
+                                                         max_per_thread=_k.QB, pool=pool), pool)
+        cells, groups, _ = _pairs.piece_plan(points, radius, x, f.edges, f.length, b, concrete, max_per_thread=_k.QB,
+                                             cache=cache, pool=pool, grid=src.grid)
         plans = [(cells, groups)]
         variants = [dict(_k.ball_variant(concrete, groups.per_thread, reach, tuple(cells.dims) == (1, 1, 1),
                                          device.is_cuda), form="unit")]
-        seg_m, seg_h, val = (pool.empty(pieces.capacity, wp.vec4) for _ in range(3))
-        wp.launch(_k.pack_piece_sources, dim=pieces.capacity,
-                  inputs=[cells.order, pieces.piece_edge, pieces.piece_index, pieces.counts, x, f.edges, f.angle,
-                          f.normal], outputs=[seg_m, seg_h, val], device=device, record_tape=False)
+        seg_m, seg_h, val = src.seg_m, src.seg_h, src.val
     else:
+        src = None
         plans = _pairs.ball_plans(points, radius, f.mid, f.length, b, concrete, max_per_thread=_k.QB, cache=cache,
                                   pool=pool,
                                   tier_size=_tier_sizes(mesh) if radius_stats is not None and b.lmax > 0 else None)
@@ -449,15 +528,11 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     parts = [pool.empty((ns, groups.padded), dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     variant = variants[0]
     chunked = [cells for (cells, _), v in zip(plans, variants) if v["chunks"]]
-    nchunks = -(-seg_m.shape[0] // int(_k.CHUNK)) if chunked else 0
-    chunk_lo, chunk_hi = (pool.empty(nchunks, wp.vec3) for _ in range(2))
-    if nchunks:
-        # the boxes of the runs the chunked traversals read, from the first record of the first of them (all, or
-        # only the last ones for a dense bucket of long edges); few threads, each a serial loop: blocks of one warp
-        # spread them over every multiprocessor
-        wp.launch(_k.chunk_boxes, dim=nchunks,
-                  inputs=[seg_m, seg_h, int(variant["form"] == "unit"), chunked[0].first, plans[-1][0].first],
-                  outputs=[chunk_lo, chunk_hi], device=device, block_dim=32)
+    if src is not None and src.chunk_lo is not None:
+        chunk_lo, chunk_hi = src.chunk_lo, src.chunk_hi  # kept with the pieces
+    else:
+        chunk_lo, chunk_hi = _chunk_boxes(seg_m, seg_h, variant["form"] == "unit", chunked[0].first if chunked else None,
+                                          plans[-1][0].first, pool)
     for i, (cells, grp) in enumerate(plans):
         kernel = _k.ball_cells_kernel(grp.per_thread, **variants[i])
         wp.launch(kernel, dim=grp.dim, inputs=[points, radius, g, *grp.args(cells), seg_m, seg_h, val, chunk_lo,
