@@ -469,9 +469,10 @@ def test_pieces_match_float64(scale, kappa, monkeypatch, device):
 def test_kept_pieces_serve_every_radius(scale, cpu_pieces, monkeypatch):
     """On the CPU the pieces of a mesh's own edges are sorted once and kept with it (CPU_PIECES): calls at 1.5, 4 and
     9 mean edge lengths (the last testing runs of records, CHUNK_REACH) all read the one kept grid, and Eq. (1) at
-    off-vertex centres equals trimesh's measure, VNC-hard at the vertices the float64 reference. With pieces of one
-    edge length in cells of a fifth (a ball's box then hugs it), a pad short of half a piece would miss pieces. The
-    public edge_fields are the caller's own: writing into them changes no later call."""
+    off-vertex centres equals trimesh's measure, VNC-hard at the vertices (a scalar radius, and per-vertex radii on
+    the device, Gaussian-weighted) the float64 reference. With pieces of one edge length in cells of a fifth (a
+    ball's box then hugs it), a pad of 0.3 of a piece misses pieces. The public edge_fields are the caller's own:
+    writing into them changes no later call. New vertices get new pieces."""
     if cpu_pieces is not None:
         monkeypatch.setattr(_pairs, "CPU_PIECES", cpu_pieces)
         monkeypatch.setattr(_pairs, "CELLS_PER_SOURCE", 1000)
@@ -494,11 +495,53 @@ def test_kept_pieces_serve_every_radius(scale, cpu_pieces, monkeypatch):
         num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, r, None)
         H = vw.vnc_hard(mesh, r, kappa=None, device=device, strategy="grid")[0].numpy()
         np.testing.assert_allclose(H, num / (2 * den), rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l")
+        if mult < 9.0:
+            # per-vertex radii on the device (the bounds read back), weighted: away from the spikes' tips, whose
+            # weights are float32 denormals (above)
+            radii = r * rng.uniform(0.8, 1.2, mesh.num_vertices)
+            num, den = dense_ball_sums(mesh.vertices, mesh.faces, mesh.vertices, radii, 6.0)
+            tau = wp.array(radii.astype(np.float32), dtype=wp.float32, device=device)
+            H = vw.vnc_hard(mesh, tau, device=device, strategy="grid")[0].numpy()
+            ok = den > 1e-30
+            assert ok.mean() > 0.9
+            np.testing.assert_allclose(H[ok], (num / (2 * den))[ok], rtol=2e-4, atol=2e-6, err_msg=f"r={mult} l")
         kept.append([v for k, v in mesh._cache.items() if isinstance(k, tuple) and k[0] == "cpu_pieces"])
     assert len(kept[0]) == 1 and all(len(k) == 1 and k[0][1] is kept[0][0][1] for k in kept)
     pieces = kept[0][0][1].grid.pieces
     assert pieces.counts.numpy().max() >= 3 and pieces.length == pytest.approx(
         _pairs.CPU_PIECES[0] * mesh.mean_edge_length, rel=1e-3)
+    # the same mesh with new vertices (a mesh's arrays are replaced, never written): new pieces
+    mesh.vertices = (mesh.vertices * np.array([1.3, 1.0, 0.8], np.float32)).astype(np.float32)
+    r = 4.0 * mesh.mean_edge_length
+    got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
+    ref = trimesh.curvature.discrete_mean_curvature_measure(mesh.to_trimesh(), pts, r)
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max(), err_msg="new vertices")
+
+
+def test_kept_pieces_not_made_inside_a_capture():
+    """Arrays made while a graph is captured hold their values only once it runs: a CPU call inside a user's capture
+    keeps no pieces (a later call, the graph never launched, is still right), and uses pieces kept before."""
+    device = wp.get_device("cpu")
+    mesh = _spiky(1.0)
+    tm = mesh.to_trimesh()
+    pts = mesh.vertices[::3]
+    r = 3.0 * mesh.mean_edge_length
+    ref = trimesh.curvature.discrete_mean_curvature_measure(tm, pts, r)
+    vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="bvh")  # the vertices' copy, outside
+    for k in [k for k in mesh._cache if isinstance(k, tuple) and k[0] in ("cpu_pieces", "edge_fields")]:
+        del mesh._cache[k]
+    with wp.ScopedCapture(device=device):
+        vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid")
+        kept = set(mesh._cache)
+    assert not [k for k in kept if isinstance(k, tuple) and k[0] in ("cpu_pieces", "edge_fields")], kept
+    got = vw.integrated_mean_curvature(mesh, r, pts, device=device, strategy="grid").numpy()
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max())
+    # at the vertices (whose call's scratch the device's pool keeps alive for the graph)
+    with wp.ScopedCapture(device=device) as capture:
+        out = vw.integrated_mean_curvature(mesh, 2.0 * r, device=device, strategy="grid")
+    wp.capture_launch(capture.graph)
+    ref2 = trimesh.curvature.discrete_mean_curvature_measure(tm, mesh.vertices, 2.0 * r)
+    np.testing.assert_allclose(out.numpy(), ref2, rtol=2e-4, atol=1e-5 * np.abs(ref2).max())
 
 
 def test_threads_with_far_apart_balls(cuda_launch_shape, device):

@@ -124,6 +124,11 @@ class Mesh:
             self._cache[name] = hit
         return hit[1]
 
+    def _kept(self, name: str):
+        """What ``_memo(name, ...)`` keeps for the current vertex array, or None (nothing computed)."""
+        hit = self._cache.get(name)
+        return hit[1] if hit is not None and hit[0] is self.vertices else None
+
     @property
     def mean_edge_length(self) -> float:
         e = self.topology.edges

@@ -168,8 +168,12 @@ def _edge_fields(mesh: Mesh, x: wp.array, requires_grad: bool = False, pool: _pa
     the mesh's own vertex array (:func:`_own_vertices`) and no gradient is wanted, computed once and kept with the
     mesh; the caller then only reads them."""
     device = x.device
-    if keep and not (requires_grad or x.requires_grad) and not device.is_capturing and _own_vertices(mesh, x):
-        return mesh._memo(("edge_fields", str(device)), lambda: _edge_fields(mesh, x))
+    if keep and not (requires_grad or x.requires_grad) and _own_vertices(mesh, x):
+        name = ("edge_fields", str(device))
+        # arrays made while a graph is captured only hold their values once it runs: none is kept then
+        kept = mesh._kept(name) if device.is_capturing else mesh._memo(name, lambda: _edge_fields(mesh, x))
+        if kept is not None:
+            return kept
     edges = _edge_array(mesh, device)
     ne = edges.shape[0]
     rg = requires_grad or x.requires_grad
@@ -434,12 +438,16 @@ def _piece_sources(x: wp.array, f: EdgeFields, grid: _pairs.PieceGrid, pool: _pa
     return _PieceSources(grid, seg_m, seg_h, val)
 
 
-def _kept_pieces(mesh: Mesh, x: wp.array, f: EdgeFields) -> _PieceSources:
+def _kept_pieces(mesh: Mesh, x: wp.array, f: EdgeFields) -> _PieceSources | None:
     """The pieces of the mesh's own edges for single-scale ball traversals on the CPU (:data:`_pairs.CPU_PIECES`):
     sorted once per vertex array and kept with the mesh, whatever the radius (as trimesh keeps an R-tree of its
-    edges), with the boxes of their runs."""
+    edges), with the boxes of their runs. While a graph is captured (its arrays only hold values once it runs) only
+    pieces kept before, else None."""
     piece, cell = _pairs.CPU_PIECES
     device = x.device
+    name = ("cpu_pieces", str(device), piece, cell)
+    if device.is_capturing:
+        return mesh._kept(name)
 
     def build():
         b = _host_bounds(mesh, x, (0.0, 0.0), lengths=True)
@@ -450,7 +458,7 @@ def _kept_pieces(mesh: Mesh, x: wp.array, f: EdgeFields) -> _PieceSources:
                                                   None)
         return src
 
-    return mesh._memo(("cpu_pieces", str(device), piece, cell), build)
+    return mesh._memo(name, build)
 
 
 def _chunk_boxes(seg_m: wp.array, seg_h: wp.array, unit: bool, start: wp.array | None, end: wp.array,
@@ -497,12 +505,12 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     reach = _pairs.ball_reach(b)
     cache = mesh._cache if points is x else None
     # on the CPU the pieces of the mesh's own edges are kept with it, whatever the radius (_kept_pieces)
-    kept = (device.is_cpu and _pairs.CPU_PIECES is not None and _own_vertices(mesh, x)
-            and _pairs.uses_pieces(concrete, b, any_length=True))
-    if kept or _pairs.uses_pieces(concrete, b):
+    kept = (_kept_pieces(mesh, x, f) if device.is_cpu and _pairs.CPU_PIECES is not None and _own_vertices(mesh, x)
+            and _pairs.uses_pieces(concrete, b, any_length=True) else None)
+    if kept is not None or _pairs.uses_pieces(concrete, b):
         # pieces of the edges, in "unit" records (the only form that holds a piece)
-        if kept:
-            src = _kept_pieces(mesh, x, f)
+        if kept is not None:
+            src = kept
         else:
             capacity = None if host is None else (lambda piece: mesh._memo(
                 ("piece_capacity", piece), lambda: _pairs.piece_capacity(_interior_lengths(mesh), piece)))
