@@ -569,13 +569,13 @@ def piece_capacity(lengths: np.ndarray, piece: float) -> int:
 @dataclass
 class PieceGrid:
     """The edge side of a traversal over pieces (:func:`piece_grid`): the pieces sorted into ``cells``, the pad that
-    every ball takes (half a piece, float32 slack included) and the cell size's expected candidates per query
-    (``work``, for the radii of the bounds it was made with)."""
+    every ball takes (half a piece, float32 slack included) and the expected candidates per query of the radii the
+    cells were chosen for (``work``; None when the cell size was given, as for every radius)."""
 
     cells: Cells
     pieces: Pieces
     pad: float
-    work: float
+    work: float | None
 
 
 def piece_grid(x: wp.array, edges: wp.array, length: wp.array, b: Bounds, strategy: str, *, piece: float | None = None,
@@ -605,8 +605,7 @@ def piece_grid(x: wp.array, edges: wp.array, length: wp.array, b: Bounds, strate
     if cell is None:
         h, work = grid_cell(b, b.rmean + pad, n, device, max_per_thread, BUSY_BALL_CELL)
     else:
-        h = cell_size(b, float(cell), n, device, fraction=1.0)
-        work = dense_fraction(b, b.rmean + pad, h) * n
+        h, work = cell_size(b, float(cell), n, device, fraction=1.0), None
     dims_np = _grid_dims(np.maximum(b.hi - b.lo, 0.0), h)
     dims = wp.vec3i(*[int(d) for d in dims_np])
     num_cells = int(np.prod(dims_np))
@@ -640,8 +639,8 @@ def piece_plan(points: wp.array, radius: wp.array, x: wp.array, edges: wp.array,
     ``points`` (balls of ``radius`` plus the grid's pad) and the pieces."""
     if grid is None:
         grid = piece_grid(x, edges, length, b, strategy, capacity=capacity, max_per_thread=max_per_thread, pool=pool)
-        work = grid.work
-    else:
+    work = grid.work
+    if work is None:  # cells not chosen for these radii
         work = dense_fraction(b, b.rmean + grid.pad, 1.0 / grid.cells.inv_h) * grid.pieces.capacity
     groups = _groups(points, radius, [grid.pad], [grid.cells], b, work, splits=splits, max_per_thread=max_per_thread,
                      cache=cache, pool=pool)[0]

@@ -72,12 +72,18 @@ def _mesh_vertices(mesh: Mesh, device) -> wp.array:
     return mesh._memo(("vertices", str(device)), lambda: wp.array(mesh.vertices, dtype=wp.vec3, device=device))
 
 
+def _own_vertices(mesh: Mesh, x: wp.array) -> bool:
+    """Whether ``x`` is the mesh's own vertex array on its device (:func:`_mesh_vertices`), whose derived arrays
+    may be kept with the mesh."""
+    kept = mesh._cache.get(("vertices", str(x.device)), (None, None))
+    return kept[0] is mesh.vertices and x is kept[1]
+
+
 def _host_bounds(mesh: Mesh, x: wp.array, radius_stats, lengths: bool = False) -> _pairs.Bounds | None:
     """The :class:`~vnc_warp._pairs.Bounds` of a call, from the host when ``x`` is the mesh's own vertices and the radii
     came from the host (``radius_stats = (max, mean)``), else None. Without a read from the device the launches that
     follow are queued while the device still works on earlier ones."""
-    kept = mesh._cache.get(("vertices", str(x.device)), (None, None))
-    if radius_stats is None or kept[0] is not mesh.vertices or x is not kept[1]:
+    if radius_stats is None or not _own_vertices(mesh, x):
         return None
     lo, hi = mesh._memo("bbox", lambda: (mesh.vertices.min(0).astype(np.float64),
                                          mesh.vertices.max(0).astype(np.float64)))
@@ -403,13 +409,6 @@ def choose_strategy(mesh: Mesh, tau, *, variant: str = "soft", device=None, posi
     f = edge_fields(mesh, positions=x, device=device)
     b = _host_bounds(mesh, x, stats, lengths=True) or _pairs.bounds(x, tau_arr, f.length)
     return _pairs.resolve("auto", device, b, b.rmean + 0.5 * b.lmax, V, E)
-
-
-def _own_vertices(mesh: Mesh, x: wp.array) -> bool:
-    """Whether ``x`` is the mesh's own vertex array on its device (:func:`_mesh_vertices`), whose derived arrays
-    may be kept with the mesh."""
-    kept = mesh._cache.get(("vertices", str(x.device)), (None, None))
-    return kept[0] is mesh.vertices and x is kept[1]
 
 
 @dataclass
