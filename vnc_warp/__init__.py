@@ -1,6 +1,32 @@
 """vnc-warp: the VNC operator, VNC-Flow and the C-VAE of "VNC: A Scale-Space Foundation for Learnable
 3D Surface Evolution", on NVIDIA Warp kernels with PyTorch interop."""
 
+def _source_checkout() -> None:
+    """Map ``kernels/`` and ``training/`` of a source checkout to ``vnc_warp.kernels`` / ``vnc_warp.training``.
+
+    pyproject installs the top-level folders under those names; run from a checkout (``python -m pytest``,
+    ``python -m bench.vnc``), the folder ``vnc_warp/`` comes first on ``sys.path`` and has neither, so both are
+    registered here from the folders beside it.
+    """
+    import importlib.util
+    import os
+    import sys
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    for name in ("kernels", "training"):
+        full = f"{__name__}.{name}"
+        init = os.path.join(os.path.dirname(here), name, "__init__.py")
+        if full in sys.modules or os.path.isdir(os.path.join(here, name)) or not os.path.isfile(init):
+            continue
+        spec = importlib.util.spec_from_file_location(full, init, submodule_search_locations=[os.path.dirname(init)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[full] = module
+        spec.loader.exec_module(module)
+        globals()[name] = module
+
+
+_source_checkout()
+
 from .mesh import EdgeTopology, Mesh, MeshError, from_arrays, load_mesh
 
 __version__ = "0.1.0"
