@@ -342,7 +342,8 @@ def _setting_changes(stored: dict, new: dict) -> tuple[list[str], list[str]]:
 
 class _Signals:
     """SIGINT / SIGTERM turned into a request to stop at the end of the current step (main thread only); a second
-    signal of the same kind raises KeyboardInterrupt at once."""
+    signal of the same kind raises KeyboardInterrupt at once. A signal the process was told to ignore (a job started
+    in the background by a shell) stays ignored."""
 
     def __init__(self) -> None:
         self.received: int | None = None
@@ -351,7 +352,8 @@ class _Signals:
     def __enter__(self) -> "_Signals":
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, self._handle)
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self._old[sig] = signal.signal(sig, self._handle)
         return self
 
     def _handle(self, signum, frame) -> None:

@@ -194,7 +194,8 @@ def test_sigterm_from_outside_saves_a_checkpoint(dataset_dir, tmp_path):
     cmd = [sys.executable, "-m", "vnc_warp.cli", "train", "--config", "tiny", "--data", str(dataset_dir), "--out",
            str(run), "--device", "cpu", "--steps", "100000", "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         if (run / "log.jsonl").is_file() and len(_rows(run)) >= 3:
