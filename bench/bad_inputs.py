@@ -4,6 +4,9 @@
     python -m bench.bad_inputs --root OLD_CHECKOUT --out OUT   # another checkout of the package, for comparison
     python -m bench.bad_inputs --markdown AFTER.json [--before BEFORE.json]
 
+``--only`` runs the cases whose name holds one of its words; with ``--out`` it updates those cases in the JSON a
+full run left there (the JSON lists such re-runs).
+
 Each case makes its inputs in a fresh folder, runs the ``vnc-warp`` commands (``python -m vnc_warp.cli`` from the
 checkout) or a few lines of Python, and records what came back: the exit code, the error line (or that a raw
 traceback came instead), and the state of the files afterwards (checkpoint step, log rows, batch.json statuses,
@@ -428,12 +431,29 @@ def generate_bad_format(case: Case) -> str:
     return f"exit {p.returncode}; {shown}"
 
 
-def checkpoint_random_bytes(case: Case) -> str:
-    (case.work / "random.pt").write_bytes(os.urandom(4096))
-    p = case.cli("generate", case.work / "random.pt", "--input", case.meshes / "shape0.obj", "--out", case.work / "g",
+def _generate_from(case: Case, checkpoint: Path) -> str:
+    p = case.cli("generate", checkpoint, "--input", case.meshes / "shape0.obj", "--out", case.work / "g",
                  "--device", "cpu")
     advice = "weights_only` set to `False" in p.stderr or "weights_only=False" in p.stderr
     return f"exit {p.returncode}; {said(p)}; advises weights_only=False: {advice}"
+
+
+def checkpoint_random_bytes(case: Case) -> str:
+    # seeded: which error torch raises depends on the first bytes
+    case.py(f"import numpy as np; open({str(case.work / 'random.pt')!r}, 'wb').write("
+            "np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())")
+    return _generate_from(case, case.work / "random.pt")
+
+
+def checkpoint_malicious(case: Case) -> str:
+    case.py(f"""
+        import os, torch
+        class Evil:
+            def __reduce__(self):
+                return (os.system, ("echo owned",))
+        torch.save({{"format": "vnc-warp-checkpoint", "payload": Evil()}}, {str(case.work / 'evil.pt')!r})
+    """)
+    return _generate_from(case, case.work / "evil.pt")
 
 
 def non_manifold(case: Case) -> str:
@@ -467,6 +487,7 @@ CASES = {
     "vnc_soft(positions=...) with a NaN vertex": api_positions_nan,
     "generate --format xyz123": generate_bad_format,
     "a checkpoint of random bytes (generate)": checkpoint_random_bytes,
+    "a checkpoint holding a pickled os.system call (generate)": checkpoint_malicious,
     "curvature of a non-manifold mesh (fin.obj)": non_manifold,
 }
 
@@ -528,7 +549,13 @@ def main(argv=None) -> dict | None:
            "cases": run_all(root, args.only)}
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "bad_inputs.json").write_text(json.dumps(doc, indent=1) + "\n")
+        path = Path(args.out) / "bad_inputs.json"
+        if args.only and path.is_file():  # a partial run updates its cases in an earlier full one
+            earlier = json.loads(path.read_text())
+            earlier["cases"].update(doc["cases"])
+            earlier.setdefault("reruns", []).append({k: doc[k] for k in ("label", "date", "command")})
+            doc = earlier
+        path.write_text(json.dumps(doc, indent=1) + "\n")
     print()
     print(markdown(doc))
     return doc

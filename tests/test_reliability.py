@@ -400,21 +400,21 @@ def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes,
 # --- operators: bad arguments ---------------------------------------------------------------------------------
 
 
-def test_operator_arguments_are_checked():
+def test_operator_arguments_are_checked(device):
     """tau=None gave a float() TypeError, points=np.zeros((0, 3)) raised from inside Warp, and NaN in
-    `positions=` (or a non-positive per-vertex tau given on the device) silently returned zeros on the Warp path
-    while the torch wrapper refused it; now tau=None names tau, no points give no values, and NaN positions or
-    bad device scales raise with every strategy."""
+    `positions=` silently gave zeros and NaN on the Warp path while the torch wrapper refused it; now tau=None
+    names tau, no points give no values, and NaN positions or bad scales given on the device raise with every
+    strategy."""
     mesh = icosphere(2)
     with pytest.raises(TypeError, match="tau must be a positive number"):
-        vw.vnc_soft(mesh, None, device="cpu")
+        vw.vnc_soft(mesh, None, device=device)
     with pytest.raises(TypeError, match="tau must be a positive number"):
-        vw.vnc_hard(mesh, "big", device="cpu")
-    empty = vw.integrated_mean_curvature(mesh, 0.3, points=np.zeros((0, 3)), device="cpu")
+        vw.vnc_hard(mesh, "big", device=device)
+    empty = vw.integrated_mean_curvature(mesh, 0.3, points=np.zeros((0, 3)), device=device)
     assert empty.shape == (0,)
     v = mesh.vertices.copy()
     v[3] = np.nan
-    x = wp.array(v, dtype=wp.vec3, device="cpu")
+    x = wp.array(v, dtype=wp.vec3, device=device)
     for strategy in vw.STRATEGIES:
         with pytest.raises(ValueError, match="positions: 1 of 162 point"):
             vw.vnc_soft(mesh, 0.3, positions=x, strategy=strategy)
@@ -423,7 +423,7 @@ def test_operator_arguments_are_checked():
     tau = np.full(mesh.num_vertices, 0.3, np.float32)
     tau[5] = 0.0
     with pytest.raises(ValueError, match="not positive and finite"):
-        vw.vnc_soft(mesh, wp.array(tau, dtype=wp.float32, device="cpu"), device="cpu")
+        vw.vnc_soft(mesh, wp.array(tau, dtype=wp.float32, device=device), device=device)
 
 
 # --- commands: one line and exit code 2 -----------------------------------------------------------------------
