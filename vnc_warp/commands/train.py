@@ -25,9 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stop-at", type=int, default=None,
                         help="stop after this step, keeping the schedule of total_steps (resume later with --resume)")
     parser.add_argument("--resume", action="store_true", help="continue exactly from RUN_DIR/checkpoints/last.pt")
-    parser.add_argument("--pretrained", default=None, help="C-VAE-II: checkpoint of the plain VAE to freeze")
+    parser.add_argument("--pretrained", default=None, metavar="RUN",
+                        help="C-VAE-II: the plain VAE to freeze, its run folder or a checkpoint file")
     parser.add_argument("--num-workers", type=int, default=None, help="override data.num_workers")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
