@@ -21,68 +21,11 @@ The commands (``vnc-warp``, ``torchrun``, ``python -c``) import this checkout's 
 from __future__ import annotations
 
 import os
-import re
 import subprocess
 import sys
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-README = ROOT / "README.md"
-DATA = Path(__file__).resolve().parent / "data"
-_DIRECTIVE = re.compile(r"^<!--\s*readme-test:\s*(.*?)\s*-->\s*$")
-
-
-@dataclass
-class Block:
-    """One fenced code block of the README."""
-
-    lang: str
-    line: int  # 1-based line of the first code line
-    code: str
-    directive: str = ""  # the readme-test comment above it, if any
-    replaced: list[tuple[str, str]] = field(default_factory=list)
-
-    @property
-    def role(self) -> str:
-        return self.directive if self.directive in ("ci-install", "ci-test") else "run"
-
-
-def readme_blocks(text: str) -> list[Block]:
-    """The fenced ``bash``/``python`` blocks of ``text`` with the readme-test comment right above each."""
-    blocks, lines, i = [], text.splitlines(), 0
-    while i < len(lines):
-        m = re.match(r"^```(\w*)\s*$", lines[i])
-        if not m or not m.group(1):
-            i += 1
-            continue
-        lang, start = m.group(1), i + 1
-        end = start
-        while end < len(lines) and lines[end].strip() != "```":
-            end += 1
-        above = _DIRECTIVE.match(lines[i - 1]) if i > 0 else None
-        if lang in ("bash", "python"):
-            blocks.append(Block(lang, start + 1, "\n".join(lines[start:end]) + "\n", above.group(1) if above else ""))
-        i = end + 1
-    return blocks
-
-
-def small(block: Block) -> str:
-    """The block's code with the replacements of its readme-test comment applied."""
-    code = block.code
-    if block.role != "run" or not block.directive:
-        return code
-    for pair in block.directive.split(";"):
-        old, sep, new = (s.strip() for s in pair.partition("=>"))
-        if not sep or not old:
-            raise ValueError(f"README.md:{block.line - 1}: readme-test wants 'OLD => NEW; ...', got {pair!r}")
-        if old not in code:
-            raise ValueError(f"README.md:{block.line - 1}: readme-test replaces {old!r}, which is not in the block "
-                             "below it (update the comment with the block)")
-        code = code.replace(old, new.replace("{data}", str(DATA)))
-    return code
+from readme import README, ROOT, Block, ci_block, readme_blocks, small
 
 
 def _env() -> dict:
@@ -95,7 +38,7 @@ def _env() -> dict:
 
 def _python_program(blocks: list[Block]) -> str:
     """One script that runs every Python block under README.md's line numbers."""
-    parts = ["import sys\n_g = {'__name__': '__main__'}\n"]
+    parts = ["_g = {'__name__': '__main__'}\n"]
     for b in blocks:
         parts.append(f"print('--- README.md:{b.line}', flush=True)\n"
                      f"exec(compile({chr(10) * (b.line - 1) + small(b)!r}, 'README.md', 'exec'), _g)\n")
@@ -106,11 +49,9 @@ def test_readme_parses_and_marks_the_ci_steps():
     """The README has one install and one test block for CI, Python and bash blocks to run, and every readme-test
     replacement names text that is in its block."""
     blocks = readme_blocks(README.read_text())
-    roles = [b.role for b in blocks]
-    assert roles.count("ci-install") == 1 and roles.count("ci-test") == 1
-    install = next(b for b in blocks if b.role == "ci-install").code
+    install = ci_block("ci-install")
     assert "pip install" in install and "-e " not in install
-    assert next(b for b in blocks if b.role == "ci-test").code.split("#")[0].strip() == "python -m pytest -q"
+    assert ci_block("ci-test").split("#")[0].strip() == "python -m pytest -q"
     run = [b for b in blocks if b.role == "run"]
     assert {b.lang for b in run} == {"bash", "python"}
     for b in run:

@@ -315,9 +315,9 @@ def curvature_scales(
     cam = camera or auto_camera(mesh)
     edge = mesh.mean_edge_length
     tiles = [_frame(mesh, cam, frame_size, device, scalars=h[i], cmap=cmap, vmin=lim[0], vmax=lim[1]) for i in idx]
-    labels = [f"tau = {t[i]:.3g}  ({t[i] / edge:.1f} x edge)" for i in idx]
+    labels = [f"τ = {t[i]:.3g}  ({t[i] / edge:.1f} × mean edge)" for i in idx]
     grid = _grid([tiles], frame=frame_size, labels=[labels])
-    bar = _colorbar_row(cmap, lim, "VNC H (dimensionless), one colour scale for all frames", grid.shape[1])
+    bar = _colorbar_row(cmap, lim, "VNC Ĥ (dimensionless), one colour scale for all frames", grid.shape[1])
     img = _titled(_vstack([grid, bar], 6), title or f"Fig. 5  VNC across scales: {mesh.name}",
                   "small scales: fine detail; large scales: coarse structure\n"
                   "red: more convex than the mean, blue: less")
@@ -516,7 +516,7 @@ def adaptive_scales(
     tiles = [_frame(m, cam, frame_size, device, scalars=f, cmap=cmap, vmin=lim[0], vmax=lim[1])
              for m, f in zip(meshes, fields)]
     grid = _grid([tiles], frame=frame_size, labels=[list(labels) if labels else [m.name for m in meshes]])
-    bar = _colorbar_row(cmap, lim, "adaptive scale tau_adpt (mesh units)", grid.shape[1])
+    bar = _colorbar_row(cmap, lim, "adaptive scale τ (Eq. 6, mesh units)", grid.shape[1])
     img = _titled(_vstack([grid, bar], 6), title or "Fig. 8b  Adaptive scales (Eq. 6)",
                   "complex regions get small scales (dark), smooth regions large ones (bright)")
     return _finish(img, path)
@@ -579,7 +579,7 @@ def filmstrip(
     grid = _grid(cells, frame=frame_size, labels=[labels[k:k + cols] for k in range(0, len(labels), cols)])
     parts = [grid]
     if lim is not None:
-        parts.append(_colorbar_row(cmap, lim, "VNC H (dimensionless)", grid.shape[1]))
+        parts.append(_colorbar_row(cmap, lim, "VNC Ĥ (dimensionless)", grid.shape[1]))
     img = _titled(_vstack(parts, 6), title or "Fig. 9a  VNC-Flow trajectory",
                   "t (Eq. 7): remaining share of the initial total VNC-AUC, 1 = input, 0 = base shape")
     return _finish(img, path)
