@@ -166,9 +166,10 @@ def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = 
 
 
 def edge_fields(mesh: Mesh, *, positions: wp.array | None = None, device=None, requires_grad: bool = False) -> EdgeFields:
-    """Midpoints, lengths, signed dihedral angles and normals of the interior edges.
+    """Midpoints, lengths, signed dihedral angles and normals of the interior edges of a :class:`Mesh`.
 
-    Launched as a differentiable kernel: inside a ``wp.Tape`` it is recorded like any Warp launch.
+    Launched as a differentiable kernel: inside a ``wp.Tape`` it is recorded like any Warp launch. Without
+    ``positions`` the midpoints are relative to ``mesh.origin`` (the operators' frame, ``mesh.local_vertices``).
     """
     device = positions.device if positions is not None else get_device(device)
     return _edge_fields(mesh, _positions(mesh, positions, device), requires_grad)
