@@ -87,6 +87,11 @@ def test_every_input_kind(seamed, tmp_path, device):
         assert isinstance(H, torch.Tensor) and H.device == V.device and H.shape == (3225,) and n.shape == (3225, 3)
     I = vw.integrated_mean_curvature((V, F), tau)
     assert isinstance(I, torch.Tensor) and I.device == V.device
+    curve = vw.scale_curve((V, F), [tau, 2 * tau])
+    assert isinstance(curve.H, torch.Tensor) and curve.H.shape == (2, 3225) and curve.H.device == V.device
+    s = vw.vnc_auc(curve)
+    assert isinstance(s, torch.Tensor) and s.shape == (3225,) and s.device == V.device
+    np.testing.assert_allclose(curve.H[0].cpu().numpy(), vw.vnc_soft((V, F), tau)[0].cpu().numpy(), atol=1e-6)
     np.testing.assert_allclose(vw.vnc_soft((V, F), tau)[0].cpu().numpy(), expect, atol=1e-6)
 
 

@@ -15,7 +15,7 @@ import sys
 
 COMMANDS = ["demo", "curvature", "dataset", "evaluate", "train", "generate", "flow", "flow-batch", "experiment"]
 
-DESCRIPTION = ("vnc-warp: the VNC operator, VNC-Flow and the C-VAE of \"VNC: A Scale-Space Foundation for "
+DESCRIPTION = ("vnc-warp: the VNC operator, VNC-Flow and the C-VAE of \"VNC: A Scale-Space Foundation for\n"
                "Learnable 3D Surface Evolution\", on NVIDIA Warp.")
 
 log = logging.getLogger("vnc_warp")
