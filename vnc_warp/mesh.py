@@ -402,45 +402,39 @@ class MeshInput:
         return arr[valid[first]]
 
     def per_point(self, values):
-        """A result with one row per query point (no vertex map) in the caller's kind."""
-        if self.kind == "warp":
-            return values
-        if self.kind == "torch":
-            import torch
-            import warp as wp
-
-            t = wp.to_torch(values) if values.device.is_cuda else torch.from_numpy(values.numpy())
-            return t.to(self.torch_device).clone()
-        return values.numpy().copy()
+        """A result with one row per query point (no vertex map), in the caller's kind."""
+        return self._answer(values, None, 0)
 
     def per_vertex(self, values, *, axis: int = 0):
         """A result computed per mesh vertex (a Warp array whose ``axis`` runs over the vertices) as the caller
         gets it: the Warp array itself (kind "warp"), or one row per caller vertex as NumPy or torch, NaN for
         vertices no face uses."""
+        return self._answer(values, self.index, axis)
+
+    def _answer(self, values, index: np.ndarray | None, axis: int):
         if self.kind == "warp":
             return values
-        if self.kind == "torch":
-            import torch
-            import warp as wp
+        if self.kind == "numpy":
+            a = values.numpy()
+            if index is None:
+                return a.copy() if values.device.is_cpu else a  # a CPU array's .numpy() is a view of it
+            out = np.take(a, np.maximum(index, 0), axis=axis)
+            if (index < 0).any():
+                out[(slice(None),) * (axis % out.ndim) + (index < 0,)] = np.nan
+            return out
+        import torch
+        import warp as wp
 
-            t = wp.to_torch(values) if values.device.is_cuda else torch.from_numpy(values.numpy())
-            if self.index is None:
-                return t.to(self.torch_device).clone()
-            idx = torch.as_tensor(self.index, device=t.device)
-            out = torch.index_select(t, axis, idx.clamp(min=0))
-            if (self.index < 0).any():
-                shape = [1] * out.ndim
-                shape[axis] = -1
-                out = torch.where((idx < 0).reshape(shape), torch.full_like(out, float("nan")), out)
-            return out.to(self.torch_device)
-        a = values.numpy()
-        if self.index is None:
-            return a.copy() if values.device.is_cpu else a
-        out = np.take(a, np.maximum(self.index, 0), axis=axis)
-        missing = self.index < 0
-        if missing.any():
-            out[(slice(None),) * (axis % out.ndim) + (missing,)] = np.nan
-        return out
+        t = wp.to_torch(values) if values.device.is_cuda else torch.from_numpy(values.numpy())
+        if index is None:
+            return t.to(self.torch_device).clone()
+        idx = torch.as_tensor(index, device=t.device)
+        out = torch.index_select(t, axis, idx.clamp(min=0))
+        if (index < 0).any():
+            shape = [1] * out.ndim
+            shape[axis] = -1
+            out = torch.where((idx < 0).reshape(shape), torch.full_like(out, float("nan")), out)
+        return out.to(self.torch_device)
 
 
 def mesh_input(source: Any, *, name: str | None = None) -> MeshInput:
