@@ -285,8 +285,9 @@ def flow(
     """Run VNC-Flow (Algorithm 1) and return the trajectory; see the module docstring for the rules.
 
     Args:
-        mesh: input mesh (path, trimesh or :class:`Mesh`); it must be watertight unless ``remesh`` is on
-            (the SDF remesher closes holes with the winding-number sign).
+        mesh: input mesh: a :class:`Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path;
+            it must be watertight unless ``remesh`` is on (the SDF remesher closes holes with the winding-number
+            sign).
         stages: number of stages N.
         faces: face count of the remeshed states (None: the input's).
         device: Warp device.

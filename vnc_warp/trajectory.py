@@ -309,7 +309,8 @@ def _difference(key: str, stored, new) -> str:
     return f"{key} differs: {stored!r} there, {new!r} now"
 
 
-def _stage_files(root: Path) -> list[str]:
+def stage_files(root: str | os.PathLike) -> list[str]:
+    """The names of the stage files (``stage_NNN.ply``) in folder ``root``, sorted."""
     return sorted(n for n in os.listdir(root) if _STAGE_FILE.fullmatch(n))
 
 
@@ -318,7 +319,7 @@ def _folder_manifest(root: Path) -> dict | None:
     the manifest does not own."""
     path = root / MANIFEST
     if not path.exists():
-        files = _stage_files(root) if root.is_dir() else []
+        files = stage_files(root) if root.is_dir() else []
         if files:
             raise TrajectoryError(
                 f"{root} holds {len(files)} stage file(s) ({_names(files)}) but no {MANIFEST}: they belong to no "
@@ -341,7 +342,7 @@ def _folder_manifest(root: Path) -> dict | None:
 
 def _check_owned(root: Path, listed: list[str], writing: str | None) -> None:
     owned = set(listed) | ({writing} if writing else set())
-    stray = [n for n in _stage_files(root) if n not in owned]
+    stray = [n for n in stage_files(root) if n not in owned]
     if stray:
         raise TrajectoryError(
             f"{root} holds {len(stray)} stage file(s) its {MANIFEST} does not list ({_names(stray)}): they are not "

@@ -10,6 +10,7 @@ import torch
 import trimesh
 
 from vnc_warp import from_arrays
+from vnc_warp.cli import add_common_options
 from vnc_warp.commands import dataset as dataset_cmd
 from vnc_warp.shapes import icosphere
 from vnc_warp.training import data as data_mod
@@ -235,8 +236,9 @@ def test_dataset_command(tmp_path, capsys):
     traj = write_trajectory(tmp_path / "cmd", _stages(), [1.0, 0.55], listed=1)
     parser = argparse.ArgumentParser()
     dataset_cmd.add_arguments(parser)
+    add_common_options(parser)
     args = parser.parse_args([str(traj), "--out", str(tmp_path / "d"), "--device", "cpu", "--num-surface", "200",
-                              "--num-uniform", "200", "--num-near", "200", "--verify", "--quiet"])
+                              "--num-uniform", "200", "--num-near", "200", "--verify", "--no-progress"])
     assert dataset_cmd.run(args) == 0
     out = capsys.readouterr().out
     assert "built 1" in out and "verified 1" in out

@@ -5,10 +5,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 
 import pytest
 
-from conftest import real_mesh_path
+from conftest import mesh_path
 from vnc_warp.cli import main
 from vnc_warp.training.experiment import ExperimentConfig, load_experiment, preset, run_config, run_experiment
 
@@ -34,8 +35,10 @@ def _reduced() -> ExperimentConfig:
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory):
     """One reduced run: 2 procedural training shapes, 1 held out, Spot trained on and distilled."""
-    meshes = real_mesh_path("spot_lowres.obj").parent
     root = tmp_path_factory.mktemp("experiment")
+    meshes = root / "meshes"  # a folder of real meshes, as --meshes takes: the bundled Spot
+    meshes.mkdir()
+    shutil.copy(mesh_path("spot_lowres.obj"), meshes / "spot_lowres.obj")
     config = _reduced()
     results = run_experiment(config, out_dir=root / "out", work_dir=root / "work", meshes_dir=meshes, device="cpu",
                              progress=False, log=lambda msg: None)

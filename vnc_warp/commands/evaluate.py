@@ -21,9 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-emd", type=int, default=4096, help="surface samples for the exact EMD (O(n^3))")
     parser.add_argument("--unoriented", action="store_true", help="unoriented NCE (angle of |n1 . n2|)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed")
-    parser.add_argument("--baseline", default=None, metavar="VAE_CKPT",
-                        help="also score the latent-interpolation baseline of this plain-VAE checkpoint: it encodes "
-                             "the GT stage 0 and last stage and decodes their linear blend at the same times")
+    parser.add_argument("--baseline", default=None, metavar="VAE_RUN",
+                        help="also score the latent-interpolation baseline of this plain VAE (a run folder or a "
+                             "checkpoint file): it encodes the GT stage 0 and last stage and decodes their linear "
+                             "blend at the same times")
     parser.add_argument("--baseline-out", default=None, metavar="DIR",
                         help="folder of the baseline's meshes (default: <PRED>_baseline)")
     parser.add_argument("--resolution", type=int, default=128, help="baseline marching-cubes grid samples per axis")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import tempfile
 from pathlib import Path
 
@@ -26,7 +27,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flow-workers", type=int, default=None, help="override the preset's flow processes")
     parser.add_argument("--eval-workers", type=int, default=None, help="override the preset's scoring processes")
     parser.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     work = args.work or str(Path(tempfile.gettempdir()) / f"vnc-warp-experiment-{config.name}")
     results = run_experiment(config, out_dir=args.out, work_dir=work, meshes_dir=args.meshes, device=args.device,
-                             progress=not args.no_progress)
+                             progress=not args.no_progress, log=logging.getLogger("vnc_warp").info)
     print((Path(args.out) / "results.md").read_text())
     failed = sum(row["failed"] for rows in results["evaluation"]["groups"].values() for row in rows.values())
     if failed:

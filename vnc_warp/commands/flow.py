@@ -19,7 +19,6 @@ def add_flow_options(p) -> None:
     p.add_argument("--max-iters", type=int, default=300, help="iteration cap per stage")
     p.add_argument("--step-fraction", type=float, default=0.25, help="eta: per-iteration move in mean edge lengths")
     p.add_argument("--no-remesh", action="store_true", help="skip SDF remeshing (input must be watertight)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def flow_kwargs(args) -> dict:

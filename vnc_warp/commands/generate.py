@@ -16,7 +16,9 @@ def _times(text: str) -> list[float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("checkpoint", metavar="CKPT", help="checkpoint file (or run folder with checkpoints/last.pt)")
+    parser.add_argument("checkpoint", metavar="RUN",
+                        help="a trained model: the run folder of `vnc-warp train --out RUN` (its checkpoints/last.pt) "
+                             "or a checkpoint file")
     parser.add_argument("--input", required=True, metavar="MESH", help="detailed input mesh (t = 1), any units")
     parser.add_argument("--t", type=_times, default=[0.0, 0.25, 0.5, 0.75, 1.0], help="comma-separated times in [0, 1]")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")

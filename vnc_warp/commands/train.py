@@ -32,9 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with a checkpoint is resumed anyway: it is never overwritten without --restart)")
     parser.add_argument("--restart", action="store_true",
                         help="discard RUN_DIR's checkpoint and log and train from step 0")
-    parser.add_argument("--pretrained", default=None, help="C-VAE-II: checkpoint of the plain VAE to freeze")
+    parser.add_argument("--pretrained", default=None, metavar="RUN",
+                        help="C-VAE-II: the plain VAE to freeze, its run folder or a checkpoint file")
     parser.add_argument("--num-workers", type=int, default=None, help="override data.num_workers")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
