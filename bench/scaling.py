@@ -416,7 +416,7 @@ def build_doc(state: dict) -> dict:
     ranks, flows, trains, p = state["ranks"], state["flows"], state["trains"], state["params"]
     first_rtol, tail_rtol = state["first_step_rtol"], state["loss_rtol"]
     table, notes = [], []
-    f1, t1 = flows.get(1), trains.get(1, {})
+    f1, t1 = flows.get(1, {}), trains.get(1, {})
     for k in ranks:
         f, t = flows.get(k), trains.get(k, {})
         if f is None:
@@ -614,6 +614,43 @@ def main(argv=None) -> dict:
         if r["rc"] != 0:
             print(_tail(r["log"]), flush=True)
         _write(out, state)
+    data = work / "data"
+    if 1 not in flows:
+        return _write(out, state)
+    if not args.no_train and budget_left("the dataset"):
+        trajs = [str(work / "flow_k1" / m["name"]) for m in inputs
+                 if flows[1]["digests"].get(m["name"], {}).get("complete")]
+        ns, nu, nn = p["samples"]
+        ds = _run([sys.executable, "-m", "vnc_warp.cli", "dataset", *trajs, "--out", str(data), "--num-surface",
+                   str(ns), "--num-uniform", str(nu), "--num-near", str(nn), "--device",
+                   "cuda:0" if dev == "cuda" else "cpu", "--quiet"], env, logs / "dataset.log")
+        state["dataset"] = dict(ds, trajectories=len(trajs))
+        print(f"dataset of {len(trajs)} trajectories: {ds['wall_s']:.1f} s (rc {ds['rc']})", flush=True)
+        if ds["rc"] != 0:
+            print(_tail(ds["log"]), flush=True)
+
+    def train(key, k: int, offset: int) -> None:
+        label = f"train_k{k}" if key == k else f"train_k{k}_{key}"
+        r = run_train(k, data, work / label, p, dev, env, logs, work, seed_offset=offset, label=label)
+        if "loss" in r and key != 1 and "loss" in trains.get(1, {}):
+            r["match"] = compare_losses(trains[1]["loss"], r["loss"], first_rtol=first_rtol,
+                                        tail_rtol=args.loss_rtol)
+        trains[key] = r
+        print(f"train {label}: {r['wall_s']:.1f} s, {_fmt(r.get('samples_per_s'))} samples/s end to end, "
+              f"{_fmt(r.get('steady_samples_per_s'))} steady (rc {r['rc']})", flush=True)
+        if r["rc"] != 0:
+            print(_tail(r["log"]), flush=True)
+        _write(out, state)
+
+    trained = False
+    if not args.no_train and budget_left("training"):
+        for k in ranks:
+            if state.get("dataset", {}).get("rc") != 0 or not budget_left(f"training K={k}"):
+                break
+            train(k, k, 0)
+        trained = trains.get(1, {}).get("rc") == 0
+
+    # the extras last, so that a time budget cuts them first
     if p["repeat"] and budget_left("the K = 1 repeat"):
         rep_in = work / "repeat_inputs"
         rep_in.mkdir()
@@ -627,33 +664,8 @@ def main(argv=None) -> dict:
         print(f"K=1 repeat of {len(chosen)} meshes: identical {len(rep['match']['identical'])}", flush=True)
         _write(out, state)
 
-    if not args.no_train and budget_left("training"):
-        data = work / "data"
-        trajs = [str(work / "flow_k1" / m["name"]) for m in inputs
-                 if flows[1]["digests"].get(m["name"], {}).get("complete")]
-        ns, nu, nn = p["samples"]
-        ds = _run([sys.executable, "-m", "vnc_warp.cli", "dataset", *trajs, "--out", str(data), "--num-surface",
-                   str(ns), "--num-uniform", str(nu), "--num-near", str(nn), "--device",
-                   "cuda:0" if dev == "cuda" else "cpu", "--quiet"], env, logs / "dataset.log")
-        state["dataset"] = dict(ds, trajectories=len(trajs))
-        print(f"dataset of {len(trajs)} trajectories: {ds['wall_s']:.1f} s (rc {ds['rc']})", flush=True)
-        if ds["rc"] != 0:
-            print(_tail(ds["log"]), flush=True)
-        runs = [(k, k, 0) for k in ranks] + ([] if args.no_seed_spread else [("seed1", 1, 1)])
-        for key, k, offset in runs:
-            if ds["rc"] != 0 or not budget_left(f"training {key}"):
-                break
-            label = f"train_k{k}" if key == k else f"train_k{k}_{key}"
-            r = run_train(k, data, work / label, p, dev, env, logs, work, seed_offset=offset, label=label)
-            if "loss" in r and key != 1 and "loss" in trains.get(1, {}):
-                r["match"] = compare_losses(trains[1]["loss"], r["loss"], first_rtol=first_rtol,
-                                            tail_rtol=args.loss_rtol)
-            trains[key] = r
-            print(f"train {label}: {r['wall_s']:.1f} s, {_fmt(r.get('samples_per_s'))} samples/s end to end, "
-                  f"{_fmt(r.get('steady_samples_per_s'))} steady (rc {r['rc']})", flush=True)
-            if r["rc"] != 0:
-                print(_tail(r["log"]), flush=True)
-            _write(out, state)
+    if trained and not args.no_seed_spread and budget_left("training K = 1 with seed + 1"):
+        train("seed1", 1, 1)
 
     doc = _write(out, state)
     print(markdown(doc), flush=True)
