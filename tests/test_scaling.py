@@ -1,6 +1,7 @@
 """The checks of ``bench.scaling`` can fail: a trajectory whose stage file differs by one bit, a missing or unfinished
 trajectory, and a loss curve that starts elsewhere, ends elsewhere, misses a step or goes non-finite are all mismatches;
-the inputs are files in the formats flow-batch and training write (``manifest.json``, ``log.jsonl``)."""
+the inputs are files in the formats flow-batch and training write (``manifest.json``, ``log.jsonl``). And the one
+command runs end to end with 1 and 2 gloo processes at the smallest sizes."""
 
 import json
 import math
@@ -99,3 +100,24 @@ def test_steady_rate_is_the_harmonic_mean_after_the_first_rows(tmp_path):
     _log(tmp_path, [0.1] * 10)  # rates 50, 51, ..., 59
     rates = np.arange(51.0, 60.0)
     assert scaling.steady_rate(tmp_path) == pytest.approx(len(rates) / np.sum(1.0 / rates))
+
+
+def test_one_command_makes_the_table(tmp_path):
+    """``python -m bench.scaling`` at the smallest sizes (2 genus-0 meshes, 1 stage, 2 training steps) runs every
+    torchrun command for K = 1 and 2 on the CPU and writes the report: each mesh on its documented rank and device,
+    the 2-process trajectories bit for bit those of one process, the K = 1 repeat too, the first step's loss equal."""
+    doc = scaling.main(["--device", "cpu", "--ranks", "1,2", "--out", str(tmp_path / "out"), "--real", "",
+                        "--procedural", "2", "--stages", "1", "--max-iters", "20", "--faces", "600", "--steps", "2",
+                        "--global-batch", "2", "--repeat", "1", "--no-seed-spread"])
+    on_disk = json.loads((tmp_path / "out" / "scaling.json").read_text())
+    assert on_disk["table"] == json.loads(json.dumps(doc["table"]))
+    assert [row["K"] for row in doc["table"]] == [1, 2]
+    flows, trains = doc["flows"], doc["trains"]
+    assert all(flows[k]["rc"] == 0 and flows[k]["statuses"] == {"done": 2} for k in ("1", "2"))
+    assert flows["2"]["wrong_rank"] == [] and flows["2"]["devices"] == ["cpu"]
+    assert flows["2"]["match"]["ok"] and len(flows["2"]["match"]["identical"]) == 2
+    assert flows["repeat"]["match"]["ok"]
+    assert trains["2"]["rc"] == 0 and trains["2"]["per_rank_batch"] == 1 and trains["1"]["per_rank_batch"] == 2
+    assert trains["2"]["match"]["first_rel"] <= 1e-5 and sorted(trains["2"]["loss"]) == [1, 2]
+    md = (tmp_path / "out" / "scaling.md").read_text()
+    assert doc["command"] in md and "| 2 |" in md and "bit for bit" in md
