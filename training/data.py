@@ -398,7 +398,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     Item ``i`` is a dict of tensors: ``surface`` (num_surface, 6) float32 xyz + normal, ``queries``
     (num_queries, 3) float32, ``tsdf`` (num_queries,) float32, ``near`` (num_queries,) bool, ``t`` ()
     float32, ``shape_id`` () int64 (position of the shape in :attr:`shape_names`, the same for every
-    split) and ``stage`` () int64. The subsets come from a generator seeded by ``(seed, epoch, i)``,
+    split), ``stage`` () int64 and, with ``num_on_surface > 0``, ``on_surface`` (num_on_surface, 6): another
+    subset of the stage's own surface samples (for the surface and normal terms; ``surface`` may be replaced
+    by stage 0's, :class:`~vnc_warp.training.train.Stage0Input`). The subsets come from a generator seeded by ``(seed, epoch, i)``,
     so items are reproducible, differ across epochs (:meth:`set_epoch`) and are safe in DataLoader
     workers. With ``repeats = k`` every stage appears k times per epoch (item ``i`` is stage
     ``i % n_stages``), each time with its own subsets: small sets then fill a batch, and the
@@ -415,11 +417,12 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         near_fraction: share of near-surface queries per item.
         cache: keep checked arrays in memory after the first read (see :meth:`preload`).
         repeats: passes over the stages per epoch (>= 1).
+        num_on_surface: points of ``on_surface`` per item (0: no such key).
     """
 
     def __init__(self, root: str | os.PathLike, *, num_surface: int = 2048, num_queries: int = 4096,
                  split: str = "train", holdout: Sequence[str] = (), seed: int = 0, near_fraction: float = 0.5,
-                 cache: bool = False, repeats: int = 1):
+                 cache: bool = False, repeats: int = 1, num_on_surface: int = 0):
         self.root = Path(root)
         index = _read_index(self.root)
         if split not in ("train", "test", "all"):
@@ -439,7 +442,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         self.items = [(sid, st) for sid, s in enumerate(self.shapes) if keep(s["name"]) for st in s["stages"]]
         if not self.items:
             raise ValueError(f"TrajectoryDataset: split {split!r} of {self.root} is empty (holdout={list(holdout)})")
-        self.num_surface, self.num_queries = int(num_surface), int(num_queries)
+        if int(num_on_surface) < 0:
+            raise ValueError(f"TrajectoryDataset: num_on_surface must be >= 0, got {num_on_surface}")
+        self.num_surface, self.num_queries, self.num_on_surface = int(num_surface), int(num_queries), int(num_on_surface)
         self.num_near = int(round(near_fraction * num_queries))
         self.seed, self.epoch = int(seed), 0
         self._cache: dict[int, dict[str, np.ndarray]] | None = {} if cache else None
@@ -492,7 +497,7 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         n_far = self.num_queries - n_near
         q_idx = np.concatenate([rng.choice(far_pool, n_far, replace=far_pool.size < n_far),
                                 rng.choice(near_pool, n_near, replace=near_pool.size < n_near)])
-        return {
+        item = {
             "surface": torch.from_numpy(np.ascontiguousarray(a["surface"][s_idx])),
             "queries": torch.from_numpy(np.ascontiguousarray(a["queries"][q_idx])),
             "tsdf": torch.from_numpy(np.ascontiguousarray(a["tsdf"][q_idx])),
@@ -501,3 +506,7 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             "shape_id": torch.tensor(sid, dtype=torch.int64),
             "stage": torch.tensor(int(st["index"]), dtype=torch.int64),
         }
+        if self.num_on_surface:
+            o_idx = rng.choice(ns, self.num_on_surface, replace=ns < self.num_on_surface)
+            item["on_surface"] = torch.from_numpy(np.ascontiguousarray(a["surface"][o_idx]))
+        return item

@@ -293,19 +293,35 @@ class DiagonalGaussian:
         """Reparameterised sample ``mean + std * eps`` (eps from the global torch RNG)."""
         return self.mean + self.std * torch.randn_like(self.mean)
 
-    def kl(self) -> torch.Tensor:
-        """(B,) KL(q || N(0, I)), averaged over the M x C latent entries."""
+    def kl(self, prior_logvar: torch.Tensor | float = 0.0) -> torch.Tensor:
+        """(B,) KL(q || N(0, s^2 I)) with ``log s^2 = prior_logvar``, averaged over the M x C latent entries.
+
+        Args:
+            prior_logvar: scalar or (B,) log-variance of the isotropic prior per item (0: N(0, I)).
+        """
         mean, logvar = self.mean.float(), self.logvar.float()
-        return 0.5 * (mean.square() + logvar.exp() - 1.0 - logvar).flatten(1).mean(1)
+        pl = torch.as_tensor(prior_logvar, dtype=torch.float32, device=mean.device)
+        pl = pl.reshape(-1, *([1] * (mean.ndim - 1))) if pl.ndim else pl
+        return 0.5 * ((mean.square() + logvar.exp()) * torch.exp(-pl) - 1.0 - logvar + pl).flatten(1).mean(1)
 
 
 class KLBottleneck(nn.Module):
-    """KL bottleneck: ``pre`` maps features to (mean, logvar), ``post`` maps latents back to width."""
+    """KL bottleneck: ``pre`` maps features to (mean, logvar), ``post`` maps latents back to width.
 
-    def __init__(self, width: int, *, latent_dim: int) -> None:
+    The log-variance half of ``pre`` starts at ``logvar_init`` (bias; weights zero). Training decodes a
+    sample of the posterior and inference its mean: a posterior that starts at N(mean, 1) trains the decoder
+    on codes an order of magnitude noisier than the ones it is evaluated on, and a small KL weight never
+    shrinks it; a narrow start (std e^-4 at -8) makes both the same code from the first step, and the KL
+    term then widens it only as far as the reconstruction allows.
+    """
+
+    def __init__(self, width: int, *, latent_dim: int, logvar_init: float = -8.0) -> None:
         super().__init__()
         self.pre = nn.Linear(width, 2 * latent_dim)
         self.post = nn.Linear(latent_dim, width)
+        with torch.no_grad():
+            self.pre.weight[latent_dim:].zero_()
+            self.pre.bias[latent_dim:].fill_(logvar_init)
 
     def posterior(self, h: torch.Tensor) -> DiagonalGaussian:
         """(B, M, width) features -> posterior over (B, M, latent_dim) latents."""
@@ -377,13 +393,15 @@ class LatentModulator(nn.Module):
     """C-VAE-II latent code modulation: z_geo cross-attends to time tokens.
 
     The latent codes (posterior mean of the frozen encoder, (B, M, C)) are projected to ``width``,
-    pass ``depth`` cross-attention blocks whose context is the time tokens, and a zero-initialised
-    projection outputs residual shifts of the posterior's mean and log-variance: at initialisation
-    the modulated posterior equals the frozen one.
+    pass ``depth`` cross-attention blocks whose context is the time tokens, and a projection outputs a
+    residual shift of the mean (zero-initialised: z_ctl starts at z_geo) and the log-variance of z_ctl
+    itself (starting at ``logvar_init``). The frozen encoder's log-variance is not inherited: z_ctl is a
+    new code whose spread the C-VAE-II objective sets, and a frozen spread near 1 would train the decoder
+    on noise while inference decodes the mean (see :class:`KLBottleneck`).
     """
 
     def __init__(self, *, latent_dim: int, width: int, heads: int, depth: int, mlp_ratio: float = 4.0,
-                 qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 qkv_bias: bool = False, qk_norm: bool = True, logvar_init: float = -8.0) -> None:
         super().__init__()
         self.proj_in = nn.Linear(latent_dim, width)
         self.blocks = nn.ModuleList(AttentionBlock(width, heads=heads, context_dim=width, mlp_ratio=mlp_ratio,
@@ -392,14 +410,16 @@ class LatentModulator(nn.Module):
         self.proj_out = nn.Linear(width, 2 * latent_dim)
         nn.init.zeros_(self.proj_out.weight)
         nn.init.zeros_(self.proj_out.bias)
+        with torch.no_grad():
+            self.proj_out.bias[latent_dim:].fill_(logvar_init)
 
     def forward(self, prior: DiagonalGaussian, time_tokens: torch.Tensor) -> DiagonalGaussian:
         """Frozen posterior and (B, T, width) time tokens -> time-modulated posterior z_ctl."""
         x = self.proj_in(prior.mean)
         for block in self.blocks:
             x = block(x, time_tokens)
-        d_mean, d_logvar = self.proj_out(self.norm(x)).chunk(2, dim=-1)
-        return DiagonalGaussian(prior.mean + d_mean, prior.logvar + d_logvar)
+        d_mean, logvar = self.proj_out(self.norm(x)).chunk(2, dim=-1)
+        return DiagonalGaussian(prior.mean + d_mean, logvar)
 
 
 def _batch_time(t: torch.Tensor | float | None, batch: int, device: torch.device) -> torch.Tensor:
@@ -461,13 +481,14 @@ class _LatentSetModel(nn.Module, abc.ABC):
                 for the eikonal term (a separate, smaller set keeps its double backward cheap).
 
         Returns:
-            ``{"tsdf": (B, Q), "kl": (B,), "z": (B, M, latent_dim)}``, plus ``"eikonal_tsdf"``: (B, E)
-            when ``eikonal_queries`` is given.
+            ``{"tsdf": (B, Q), "z": (B, M, latent_dim), "mean", "logvar"}`` (the posterior, (B, M, latent_dim)
+            each; the loss takes its KL), plus ``"eikonal_tsdf"``: (B, E) when ``eikonal_queries`` is given.
         """
         _check_inputs(surface, queries)
         z, posterior = self.encode(surface, t)
         tokens = self.latent_tokens(z)
-        out = {"tsdf": self.decoder.queries(tokens, queries), "kl": posterior.kl(), "z": z}
+        out = {"tsdf": self.decoder.queries(tokens, queries), "z": z, "mean": posterior.mean,
+               "logvar": posterior.logvar}
         if eikonal_queries is not None:
             _check_inputs(None, eikonal_queries)
             out["eikonal_tsdf"] = self.decoder.queries(tokens, eikonal_queries)
@@ -493,12 +514,13 @@ class VecSetVAE(_LatentSetModel):
         time_tokens: 0 for the plain VAE; > 0 adds the time embedding and the encoder's time
             cross-attention blocks.
         time_freq_dim: sinusoidal time feature width.
+        logvar_init: initial log-variance of the posterior (see :class:`KLBottleneck`).
     """
 
     def __init__(self, *, width: int, heads: int, num_latents: int, latent_dim: int, encoder_depth: int,
                  decoder_depth: int, num_freqs: int = 8, include_pi: bool = False, mlp_ratio: float = 4.0,
                  qkv_bias: bool = False, qk_norm: bool = True, chunk_size: int = 32768, time_tokens: int = 0,
-                 time_freq_dim: int = 256) -> None:
+                 time_freq_dim: int = 256, logvar_init: float = -8.0) -> None:
         super().__init__()
         block = dict(mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.num_latents = num_latents
@@ -510,7 +532,7 @@ class VecSetVAE(_LatentSetModel):
         self.encoder = PointEncoder(embedder=self.embedder, width=width, heads=heads, num_latents=num_latents,
                                     depth=encoder_depth, condition_dim=width if self.time_conditioned else None,
                                     **block)
-        self.bottleneck = KLBottleneck(width, latent_dim=latent_dim)
+        self.bottleneck = KLBottleneck(width, latent_dim=latent_dim, logvar_init=logvar_init)
         self.decoder = LatentDecoder(embedder=self.embedder, width=width, heads=heads, depth=decoder_depth,
                                      chunk_size=chunk_size, **block)
 
@@ -573,12 +595,13 @@ class CVAE2(_LatentSetModel):
         time_freq_dim: sinusoidal time feature width.
         modulator_depth: cross-attention blocks of the modulator.
         heads: heads of the modulator (default: those of the base encoder).
+        logvar_init: initial log-variance of z_ctl (see :class:`LatentModulator`).
     """
 
     time_conditioned = True
 
     def __init__(self, *, base: VecSetVAE, time_tokens: int = 4, time_freq_dim: int = 256, modulator_depth: int = 2,
-                 heads: int | None = None) -> None:
+                 heads: int | None = None, logvar_init: float = -8.0) -> None:
         super().__init__()
         if not isinstance(base, VecSetVAE) or base.time_conditioned:
             raise ValueError("CVAE2: base must be a plain (not time-conditioned) VecSetVAE")
@@ -592,7 +615,8 @@ class CVAE2(_LatentSetModel):
         self.frozen.requires_grad_(False)
         self.frozen.eval()
         self.time_embed = TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim)
-        self.modulator = LatentModulator(latent_dim=base.latent_dim, width=width, heads=heads, depth=modulator_depth)
+        self.modulator = LatentModulator(latent_dim=base.latent_dim, width=width, heads=heads, depth=modulator_depth,
+                                         logvar_init=logvar_init)
 
     def train(self, mode: bool = True) -> "CVAE2":
         super().train(mode)
@@ -657,10 +681,12 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         if pre.get("kind") != "vae":
             raise CheckpointError(f"{config.pretrained}: C-VAE-II needs a plain VAE checkpoint, this one is "
                                   f"model.kind={pre.get('kind')!r}")
-        diff = {k: (pre.get(k), v) for k, v in backbone.items() if k != "chunk_size" and pre.get(k) != v}
+        # chunk_size sets how queries are batched and logvar_init only the initial weights: neither is architecture
+        diff = {k: (pre.get(k), v) for k, v in backbone.items()
+                if k not in ("chunk_size", "logvar_init") and pre.get(k) != v}
         if diff:
             detail = ", ".join(f"{k}: checkpoint {a!r} vs config {b!r}" for k, (a, b) in diff.items())
             raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")
         base.load_state_dict(ckpt["model"])
     return CVAE2(base=base, time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
-                 modulator_depth=config.modulator_depth)
+                 modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)

@@ -177,7 +177,7 @@ def test_models_forward_shapes(kind, tdevice):
     t = torch.tensor([0.0, 0.5, 1.0], device=tdevice)
     out = model(s, q, t)
     assert out["tsdf"].shape == (3, 120) and out["tsdf"].dtype == torch.float32
-    assert out["kl"].shape == (3,) and out["z"].shape == (3, 16, 8)
+    assert out["mean"].shape == out["logvar"].shape == out["z"].shape == (3, 16, 8)
     eq = q[:, :10].clone().requires_grad_(True)
     assert model(s, q, t, eikonal_queries=eq)["eikonal_tsdf"].shape == (3, 10)
     model.eval()
@@ -236,7 +236,7 @@ def test_cvae2_encoder_frozen_through_a_step():
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-2)
     s, q = _surface(2, 40), torch.rand(2, 50, 3) * 2 - 1
     out = model(s, q, torch.tensor([0.2, 0.8]))
-    (out["tsdf"].square().mean() + out["kl"].mean()).backward()
+    (out["tsdf"].square().mean() + DiagonalGaussian(out["mean"], out["logvar"]).kl().mean()).backward()
     assert all(p.grad is None for p in model.frozen.parameters())
     opt.step()
     assert all(torch.equal(frozen[k], v) for k, v in model.frozen.state_dict().items())
@@ -247,11 +247,23 @@ def test_cvae2_encoder_frozen_through_a_step():
 
 
 def test_latent_modulator_identity_at_init():
-    """The zero-initialised modulator output leaves the frozen posterior unchanged."""
-    mod = LatentModulator(latent_dim=8, width=32, heads=4, depth=2)
-    prior = DiagonalGaussian(torch.randn(2, 5, 8), torch.randn(2, 5, 8))
+    """At initialisation z_ctl's mean is the frozen z_geo's and its log-variance is the modulator's own
+    ``logvar_init``, whatever the frozen encoder's log-variance (defect 2 of issue 24: a frozen spread of ~1 was
+    inherited, so C-VAE-II trained its decoder on noise)."""
+    mod = LatentModulator(latent_dim=8, width=32, heads=4, depth=2, logvar_init=-6.0)
+    prior = DiagonalGaussian(torch.randn(2, 5, 8), torch.zeros(2, 5, 8))
     post = mod(prior, torch.randn(2, 3, 32))
-    assert torch.equal(post.mean, prior.mean) and torch.equal(post.logvar, prior.logvar)
+    assert torch.equal(post.mean, prior.mean)
+    assert torch.equal(post.logvar, torch.full_like(prior.logvar, -6.0))
+
+
+def test_bottleneck_starts_narrow():
+    """The KL bottleneck's posterior starts at log-variance ``logvar_init`` for any features (defect 1 of issue
+    24: it started near 0, so training decoded codes with std ~1 around the mean that inference decodes)."""
+    torch.manual_seed(0)
+    post = KLBottleneck(32, latent_dim=8).posterior(torch.randn(2, 16, 32) * 5)
+    assert torch.equal(post.logvar, torch.full_like(post.logvar, -8.0))
+    assert float(post.std.max().detach()) < 0.02 and float(post.mean.abs().max().detach()) > 0.1
 
 
 def test_eikonal_loss_analytic_sphere():
