@@ -50,8 +50,8 @@ def test_results_hold_both_rows_with_finite_metrics(experiment):
     on_disk = json.loads((root / "out" / "results.json").read_text())
     assert on_disk["evaluation"]["groups"].keys() == results["evaluation"]["groups"].keys()
     groups = results["evaluation"]["groups"]
-    assert set(groups) == {"held-out procedural", "distilled: spot_lowres"}
-    assert list(groups["held-out procedural"]) == ["cvae1", "baseline"]
+    assert set(groups) == {"held-out blobs", "distilled: spot_lowres"}
+    assert list(groups["held-out blobs"]) == ["cvae1", "baseline"]
     assert list(groups["distilled: spot_lowres"]) == ["cvae2", "cvae1", "baseline"]
     markdown = (root / "out" / "results.md").read_text()
     for rows in groups.values():
@@ -72,7 +72,7 @@ def test_results_hold_both_rows_with_finite_metrics(experiment):
     assert anatomy["n"] == config.stages + 1 and math.isfinite(anatomy["pc1_t_abs_pearson"])
     pngs = sorted(p.name for p in (root / "out").glob("*.png"))
     assert pngs == ["compare_family0_0002.png", "compare_spot_lowres.png", "fig11_latent_space.png",
-                    "fig9b_cvae1_family0_0002.png", "fig9b_cvae2_spot_lowres.png"]
+                    "fig9b_cvae1_family0_0002.png", "training.png"]
 
 
 def test_rerun_skips_finished_stages(experiment):
@@ -163,7 +163,7 @@ def test_time_budget_plans_steps_from_measured_throughput(tmp_path):
     exp = dataclasses.replace(preset("cpu-smoke"), calibration_steps=10, min_steps=15)
     cfg = run_config(exp, "cvae1")
     cfg.optim = dataclasses.replace(cfg.optim, total_steps=400)
-    data = EllipsoidTrajectories(num_shapes=2, num_stages=3, seed=0)
+    data = EllipsoidTrajectories(num_shapes=2, num_stages=3, seed=0, num_on_surface=cfg.data.num_on_surface)
     first = _train("cvae1", cfg, data, tmp_path, device="cpu", budget_s=2.0, config=exp, progress=False,
                    log=lambda msg: None)
     plan = json.loads((tmp_path / "plan.json").read_text())
