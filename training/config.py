@@ -64,6 +64,8 @@ class ModelConfig:
         logvar_init: initial log-variance of the posterior (the bias of the bottleneck's log-variance half, and of
             C-VAE-II's z_ctl): training decodes posterior samples, inference the mean, and both must see the
             same codes from the start (see :class:`~vnc_warp.training.model.KLBottleneck`).
+        sdf_init: the SDF an untrained decoder predicts everywhere (the bias of its zero-weight head); the TSDF
+            truncation starts from empty space, 0 from a surface everywhere.
         pretrained: C-VAE-II only: path of the plain VAE checkpoint whose encoder is frozen.
     """
 
@@ -84,12 +86,13 @@ class ModelConfig:
     time_freq_dim: int = 256
     modulator_depth: int = 2
     logvar_init: float = -8.0
+    sdf_init: float = 0.0
     pretrained: str | None = None
 
     def backbone_kwargs(self) -> dict[str, Any]:
         """Constructor arguments of :class:`~vnc_warp.training.model.VecSetVAE` (no time branch)."""
         names = ("width", "heads", "num_latents", "latent_dim", "encoder_depth", "decoder_depth", "num_freqs",
-                 "include_pi", "mlp_ratio", "qkv_bias", "qk_norm", "chunk_size", "logvar_init")
+                 "include_pi", "mlp_ratio", "qkv_bias", "qk_norm", "chunk_size", "logvar_init", "sdf_init")
         return {n: getattr(self, n) for n in names}
 
 

@@ -221,22 +221,37 @@ def _read_index(root: Path) -> dict:
     return index
 
 
+def _near_points(mesh: Mesh, count: int, noise: Sequence[float], rng: np.random.Generator) -> list[np.ndarray]:
+    """``count`` surface points displaced by Gaussian noise, split evenly over the ``noise`` levels."""
+    per_level = np.diff(np.linspace(0, count, len(noise) + 1).round().astype(int))
+    parts = []
+    for sigma, n in zip(noise, per_level):
+        pts, _ = sample_surface(mesh, int(n), rng)
+        parts.append(pts + rng.normal(0.0, sigma, size=pts.shape))
+    return parts
+
+
 def _sample_stage(mesh: Mesh, rng: np.random.Generator, *, num_surface: int, num_uniform: int, num_near: int,
-                  noise: Sequence[float], truncation: float, device: wp.context.Device) -> dict[str, np.ndarray]:
-    """Surface points, queries and truncated signed distances of one normalized stage mesh."""
+                  noise: Sequence[float], truncation: float, device: wp.context.Device, reference: Mesh | None = None,
+                  num_reference: int = 0) -> dict[str, np.ndarray]:
+    """Surface points, queries and truncated signed distances of one normalized stage mesh.
+
+    Queries: ``num_uniform`` uniform in the box and ``num_reference`` near ``reference`` (the trajectory's
+    stage 0), both flagged far; then ``num_near`` near the stage's own surface, flagged near.
+    """
     surf, normals = sample_surface(mesh, num_surface, rng)
     parts = [rng.uniform(-1.0, 1.0, size=(num_uniform, 3))]
-    per_level = np.diff(np.linspace(0, num_near, len(noise) + 1).round().astype(int))
-    for sigma, count in zip(noise, per_level):
-        pts, _ = sample_surface(mesh, int(count), rng)
-        parts.append(pts + rng.normal(0.0, sigma, size=pts.shape))
+    if num_reference:
+        parts += _near_points(reference, num_reference, noise, rng)
+    far = sum(len(p) for p in parts)
+    parts += _near_points(mesh, num_near, noise, rng)
     queries = np.concatenate(parts).astype(np.float32)
     # The labels stay on the device from Warp to PyTorch: torch in, torch out (no host round trip).
     q = torch.from_numpy(queries).to(wp.device_to_torch(device))
     sd = signed_distance(mesh, q, device=device, max_dist=truncation, sign="winding")
     tsdf = torch.clamp(sd, -truncation, truncation)
     near = np.zeros(queries.shape[0], dtype=bool)
-    near[num_uniform:] = True
+    near[far:] = True
     return {
         "surface": np.concatenate([surf, normals], axis=1).astype(np.float32),
         "queries": queries,
@@ -254,6 +269,7 @@ def build_dataset(
     num_near: int = 16384,
     noise: Sequence[float] = (0.005, 0.02),
     truncation: float = 0.1,
+    num_reference: int = 0,
     device=None,
     seed: int = 0,
     overwrite: bool = False,
@@ -262,10 +278,13 @@ def build_dataset(
     """Sample every listed stage of every trajectory into ``out_dir`` (written once, read many times).
 
     Per stage: ``num_surface`` area-weighted surface points with face normals, ``num_uniform`` queries
-    uniform in [-1, 1]^3 and ``num_near`` queries near the surface (surface points plus Gaussian noise,
-    split evenly over the ``noise`` standard deviations), labelled with signed distances
-    (:func:`vnc_warp.sdf.signed_distance`, winding-number sign, negative inside) clamped to
-    ``[-truncation, truncation]``; all lengths in normalized units (see :func:`normalization`).
+    uniform in [-1, 1]^3, ``num_reference`` queries near the trajectory's stage-0 surface and ``num_near``
+    queries near the stage's own surface (surface points plus Gaussian noise, split evenly over the ``noise``
+    standard deviations), labelled with the stage's signed distances (:func:`vnc_warp.sdf.signed_distance`,
+    winding-number sign, negative inside) clamped to ``[-truncation, truncation]``; all lengths in normalized
+    units (see :func:`normalization`). The C-VAEs decode every stage from stage 0's encoding, so the space the
+    detailed input filled and a later stage left is where their remnants of it float; the ``num_reference``
+    queries supervise it. Only the own-surface queries are flagged ``near``.
 
     A stage whose file already exists, loads, matches its checksum in ``index.json`` and was produced
     by the same settings, normalization and stage mesh is skipped; a corrupt or stale one is rebuilt
@@ -275,6 +294,7 @@ def build_dataset(
         traj_dirs: trajectory directories; the directory name is the shape name (must be unique).
         out_dir: dataset directory (created).
         num_surface, num_uniform, num_near: samples per stage.
+        num_reference: queries per stage near the trajectory's stage 0 (flagged far).
         noise: near-surface noise standard deviations (normalized units), e.g. two levels.
         truncation: TSDF truncation distance (normalized units).
         device: Warp device for the signed distances (None: preferred device).
@@ -300,8 +320,12 @@ def build_dataset(
         raise ValueError(f"build_dataset: noise must list positive standard deviations, got {noise}")
     if not truncation > 0.0:
         raise ValueError(f"build_dataset: truncation must be positive, got {truncation}")
+    if num_reference < 0:
+        raise ValueError(f"build_dataset: num_reference must be >= 0, got {num_reference}")
     config = {"num_surface": int(num_surface), "num_uniform": int(num_uniform), "num_near": int(num_near),
               "noise": noise, "truncation": float(truncation), "seed": int(seed)}
+    if num_reference:
+        config["num_reference"] = int(num_reference)
     trajs = [read_trajectory(d) for d in traj_dirs]
     names = [tr.name for tr in trajs]
     dup = sorted({n for n in names if names.count(n) > 1})
@@ -326,7 +350,9 @@ def build_dataset(
     counts = {"built": 0, "skipped": 0, "rebuilt": 0}
     bar = tqdm(total=sum(len(tr.stages) for tr in trajs), unit="stage", disable=not progress, desc="dataset")
     for tr in trajs:
-        center, scale = normalization(tr.load_stage(0))
+        stage0 = tr.load_stage(0)
+        center, scale = normalization(stage0)
+        reference = stage0.with_vertices((stage0.vertices.astype(np.float64) - center) * scale)
         known = {st["file"]: st.get("sha256") for st in shapes.get(tr.name, {}).get("stages", [])}
         entries = []
         for pos, st in enumerate(tr.stages):
@@ -350,7 +376,8 @@ def build_dataset(
                 mesh = mesh.with_vertices((mesh.vertices.astype(np.float64) - center) * scale)
                 rng = np.random.default_rng([int(seed), zlib.crc32(tr.name.encode()), st.index])
                 arrays = _sample_stage(mesh, rng, num_surface=num_surface, num_uniform=num_uniform,
-                                       num_near=num_near, noise=noise, truncation=truncation, device=dev)
+                                       num_near=num_near, noise=noise, truncation=truncation, device=dev,
+                                       reference=reference, num_reference=num_reference)
                 arrays["t"] = np.float32(st.t)
                 arrays["config"] = np.array(json.dumps(stage_config))
                 sha = _write_sample(path, arrays)

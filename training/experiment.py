@@ -94,6 +94,8 @@ class ExperimentConfig:
             left out (held-out and real shapes always flow, first); None: no limit.
         num_samples: surface points, uniform and near-surface queries per stage of the dataset (the pools
             every item draws a fresh subset from).
+        num_reference: queries per stage near the trajectory's stage 0, labelled with the stage's SDF (where
+            remnants of the detailed input float; see :func:`~vnc_warp.training.data.build_dataset`).
         noise: standard deviations of the near-surface queries (normalized units), split evenly.
         truncation: TSDF truncation (normalized units).
         backbone: the VecSet backbone shared by all three models (``kind`` and ``pretrained`` are set
@@ -137,6 +139,7 @@ class ExperimentConfig:
     flow_workers: int = 1
     flow_budget_s: float | None = None
     num_samples: tuple[int, int, int] = (2048, 2048, 2048)
+    num_reference: int = 0
     noise: tuple[float, ...] = (0.005, 0.02)
     truncation: float = 0.1
     backbone: ModelConfig = field(default_factory=ModelConfig)
@@ -211,8 +214,8 @@ class ExperimentConfig:
             raise ValueError(f"real mesh names must be unique (train and held out together), got {names}")
         if min(self.stages, self.max_iters, self.flow_workers, self.eval_workers) < 1 or self.distill_stages < 0:
             raise ValueError("stages, max_iters, flow_workers and eval_workers must be >= 1, distill_stages >= 0")
-        if min(self.num_samples) < 1 or self.repeats < 1 or self.distill_repeats < 1:
-            raise ValueError("num_samples, repeats and distill_repeats must be >= 1")
+        if min(self.num_samples) < 1 or self.repeats < 1 or self.distill_repeats < 1 or self.num_reference < 0:
+            raise ValueError("num_samples, repeats and distill_repeats must be >= 1, num_reference >= 0")
         if not self.noise or min(self.noise) <= 0:
             raise ValueError(f"noise must list positive standard deviations, got {list(self.noise)}")
         if not self.times or not all(0.0 <= t <= 1.0 for t in self.times):
@@ -390,11 +393,11 @@ def default_meshes_dir() -> Path | None:
 
 
 class _Clock:
-    """Wall time per stage and the experiment's deadline."""
+    """Wall time per stage, in this call and summed over every call on the work folder (``timings.json``)."""
 
-    def __init__(self, budget_s: float | None) -> None:
+    def __init__(self, path: Path | None = None) -> None:
         self.start = time.perf_counter()
-        self.deadline = None if budget_s is None else self.start + budget_s
+        self.path = path
         self.seconds: dict[str, float] = {}
 
     @contextlib.contextmanager
@@ -404,11 +407,18 @@ class _Clock:
         try:
             yield
         finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+            spent = time.perf_counter() - t0
+            self.seconds[name] = self.seconds.get(name, 0.0) + spent
+            if self.path is not None:
+                totals = json.loads(self.path.read_text()) if self.path.is_file() else {}
+                totals[name] = totals.get(name, 0.0) + spent
+                self.path.write_text(json.dumps(totals, indent=1))
             log(f"[experiment] {name}: {self.seconds[name]:.1f} s")
 
-    def left(self) -> float | None:
-        return None if self.deadline is None else self.deadline - time.perf_counter()
+    def totals(self) -> dict[str, float]:
+        """Seconds per stage over every call (this one included), and their sum."""
+        totals = json.loads(self.path.read_text()) if self.path is not None and self.path.is_file() else self.seconds
+        return {**totals, "total": float(sum(totals.values()))}
 
     def total(self) -> float:
         return time.perf_counter() - self.start
@@ -828,8 +838,8 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     from .data import build_dataset
 
     config.validate()
-    clock = _Clock(None)
     _check_work_dir(work, config)
+    clock = _Clock(work / "timings.json")
     meshes = Path(meshes_dir) if meshes_dir is not None else default_meshes_dir()
     torch_device = _torch_device(device)
     warp_device = device if device is not None else ("cuda:0" if torch_device.type == "cuda" else "cpu")
@@ -865,7 +875,8 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
             results["dataset"] = json.loads(stamp.read_text())
         else:
             results["dataset"] = build_dataset([s.traj for s in in_data], work / "data", num_surface=ns,
-                                               num_uniform=nu, num_near=nn_, noise=config.noise,
+                                               num_uniform=nu, num_near=nn_, num_reference=config.num_reference,
+                                               noise=config.noise,
                                                truncation=config.truncation, device=warp_device, seed=config.seed,
                                                progress=progress)
             results["dataset"]["shapes"] = names
@@ -1094,7 +1105,8 @@ def _training_figure(path: Path, training: dict) -> str:
 
 def _write_results(out: Path, results: dict, clock: _Clock) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    results["timings_s"] = {**clock.seconds, "total": clock.total()}
+    results["timings_s"] = clock.totals()
+    results["timings_this_call_s"] = {**clock.seconds, "total": clock.total()}
     for name, text in (("results.json", json.dumps(_finite(results), indent=1)),
                        ("results.md", results_markdown(results))):
         tmp = out / f"{name}.tmp"
@@ -1180,7 +1192,8 @@ def _cd_table(groups: dict, times: list[float], key: str, title: str, part: str 
             cells = [_fmt(by_t[t][key]) if t in by_t else "n/a" for t in times]
             lines.append(f"| {group} ({len(row['trajectories'])}) | {METHODS[method]} | " + " | ".join(cells)
                          + f" | {row['failed']} |")
-        floors = {r["t"]: r["floor"][key] for r in next(iter(rows.values()))["per_t"]}
+        floors = {r["t"]: (r["floor"] if part != "unit_box" else r["floor"]["unit_box"])[key]
+                  for r in next(iter(rows.values()))["per_t"]}
         lines.append(f"| {group} | *sampling floor* | " + " | ".join(_fmt(floors.get(t)) for t in times) + " | |")
     return lines + [""]
 
@@ -1239,7 +1252,7 @@ def results_markdown(results: dict) -> str:
         f"{MODELS[k]} r(distance from centre, t) = {_fmt(results['latent_anatomy'][k]['umap_radius_t_pearson'])}"
         for k in umap) if umap else "umap-learn not installed; Fig. 11a shows PCA instead.")]
     t = results["timings_s"]
-    lines += ["", "## Wall time (s)", "", "| " + " | ".join(t) + " |", "|" + "---|" * len(t),
+    lines += ["", "## Wall time (s, summed over every call on the work folder)", "", "| " + " | ".join(t) + " |", "|" + "---|" * len(t),
               "| " + " | ".join(_fmt(v, 1) for v in t.values()) + " |", ""]
     flows = results["flows"]
     done = [f for f in flows.values() if f.get("status") in ("done", "skipped (done)")]

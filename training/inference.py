@@ -114,6 +114,9 @@ def _marching_cubes(sdf: np.ndarray | torch.Tensor, level: float, bound: float) 
         import warp as wp
         import warp.geometry
 
+        from vnc_warp._device import get_device
+
+        get_device(sdf.device)  # Warp initialised (quietly) before it reads the tensor
         field = wp.from_torch((sdf.float() - level).contiguous(), dtype=wp.float32)
         stream = wp.stream_from_torch(sdf.device) if sdf.is_cuda else None
         with wp.ScopedStream(stream):

@@ -332,11 +332,13 @@ class KLBottleneck(nn.Module):
 class QueryDecoder(nn.Module):
     """Chunked cross-attention decoder: embedded query points attend to the latent tokens.
 
-    The output head is zero-initialised, so an untrained decoder predicts SDF 0 everywhere.
+    The output head's weights are zero-initialised and its bias is ``sdf_init``, so an untrained decoder predicts
+    that constant everywhere: 0 (the surface everywhere) or, e.g., the TSDF truncation (empty space, so that no
+    surface exists where training never put one).
     """
 
     def __init__(self, *, embedder: FourierEmbedder, width: int, heads: int, chunk_size: int = 32768,
-                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True, sdf_init: float = 0.0) -> None:
         super().__init__()
         self.embedder = embedder
         self.chunk_size = chunk_size
@@ -346,7 +348,7 @@ class QueryDecoder(nn.Module):
         self.norm = nn.LayerNorm(width)
         self.head = nn.Linear(width, 1)
         nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
+        nn.init.constant_(self.head.bias, sdf_init)
 
     def forward(self, tokens: torch.Tensor, queries: torch.Tensor, *, chunk_size: int | None = None) -> torch.Tensor:
         """tokens: (B, M, width); queries: (B, Q, 3) -> (B, Q) predicted truncated SDF."""
@@ -372,11 +374,11 @@ class LatentDecoder(nn.Module):
     """Self-attention latent transformer followed by the :class:`QueryDecoder`."""
 
     def __init__(self, *, embedder: FourierEmbedder, width: int, heads: int, depth: int, chunk_size: int = 32768,
-                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True, sdf_init: float = 0.0) -> None:
         super().__init__()
         block = dict(heads=heads, mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.layers = nn.ModuleList(AttentionBlock(width, **block) for _ in range(depth))
-        self.queries = QueryDecoder(embedder=embedder, width=width, chunk_size=chunk_size, **block)
+        self.queries = QueryDecoder(embedder=embedder, width=width, chunk_size=chunk_size, sdf_init=sdf_init, **block)
 
     def tokens(self, h: torch.Tensor) -> torch.Tensor:
         """(B, M, width) post-projected latents -> (B, M, width) tokens for the query decoder."""
@@ -515,12 +517,13 @@ class VecSetVAE(_LatentSetModel):
             cross-attention blocks.
         time_freq_dim: sinusoidal time feature width.
         logvar_init: initial log-variance of the posterior (see :class:`KLBottleneck`).
+        sdf_init: SDF an untrained decoder predicts everywhere (see :class:`QueryDecoder`).
     """
 
     def __init__(self, *, width: int, heads: int, num_latents: int, latent_dim: int, encoder_depth: int,
                  decoder_depth: int, num_freqs: int = 8, include_pi: bool = False, mlp_ratio: float = 4.0,
                  qkv_bias: bool = False, qk_norm: bool = True, chunk_size: int = 32768, time_tokens: int = 0,
-                 time_freq_dim: int = 256, logvar_init: float = -8.0) -> None:
+                 time_freq_dim: int = 256, logvar_init: float = -8.0, sdf_init: float = 0.0) -> None:
         super().__init__()
         block = dict(mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.num_latents = num_latents
@@ -534,7 +537,7 @@ class VecSetVAE(_LatentSetModel):
                                     **block)
         self.bottleneck = KLBottleneck(width, latent_dim=latent_dim, logvar_init=logvar_init)
         self.decoder = LatentDecoder(embedder=self.embedder, width=width, heads=heads, depth=decoder_depth,
-                                     chunk_size=chunk_size, **block)
+                                     chunk_size=chunk_size, sdf_init=sdf_init, **block)
 
     def posterior(self, surface: torch.Tensor, t: torch.Tensor | float | None = None, *,
                   random_start: bool = False) -> DiagonalGaussian:
@@ -681,9 +684,9 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         if pre.get("kind") != "vae":
             raise CheckpointError(f"{config.pretrained}: C-VAE-II needs a plain VAE checkpoint, this one is "
                                   f"model.kind={pre.get('kind')!r}")
-        # chunk_size sets how queries are batched and logvar_init only the initial weights: neither is architecture
+        # chunk_size sets how queries are batched, logvar_init and sdf_init only the initial weights: no architecture
         diff = {k: (pre.get(k), v) for k, v in backbone.items()
-                if k not in ("chunk_size", "logvar_init") and pre.get(k) != v}
+                if k not in ("chunk_size", "logvar_init", "sdf_init") and pre.get(k) != v}
         if diff:
             detail = ", ".join(f"{k}: checkpoint {a!r} vs config {b!r}" for k, (a, b) in diff.items())
             raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")

@@ -207,6 +207,29 @@ def test_dataset_items_splits_and_seeding(built):
         TrajectoryDataset(base / "data", split="test")
 
 
+def test_on_surface_points_are_the_items_own(built):
+    """With num_on_surface, every item carries points and unit normals on its OWN stage's surface (the stage-1
+    sphere of radius 0.8 r, normalized), also when Stage0Input gives the encoder stage 0's surface (radius r); the
+    near fraction sets the share of near-surface queries (defect 5 of issue 24: on-surface and normal terms need
+    the item's own surface, and most queries near it)."""
+    from vnc_warp.training.train import Stage0Input
+
+    base, _, _ = built
+    ds = TrajectoryDataset(base / "data", num_surface=128, num_queries=400, holdout=["beta"], num_on_surface=200,
+                           near_fraction=0.8)
+    item, wrapped = ds[1], Stage0Input(ds)[1]
+    assert item["on_surface"].shape == (200, 6) and int(item["near"].sum()) == 320
+    assert torch.equal(wrapped["on_surface"], item["on_surface"])
+    shape = json.loads((base / "data" / "index.json").read_text())["shapes"][0]
+    r_norm = RADIUS * shape["scale"]
+    radius = lambda pts: torch.linalg.norm(pts[:, :3], dim=1).numpy()  # noqa: E731  (centred: bbox centre)
+    assert np.allclose(radius(wrapped["surface"]), r_norm, rtol=0.02)            # stage 0, encoder input
+    assert np.allclose(radius(item["on_surface"]), 0.8 * r_norm, rtol=0.06)      # stage 1, its own surface
+    pts, nrm = item["on_surface"][:, :3], item["on_surface"][:, 3:]
+    assert float((torch.nn.functional.normalize(pts, dim=1) * nrm).sum(1).min()) > 0.9  # outward normals
+    assert "on_surface" not in TrajectoryDataset(base / "data", num_surface=128, num_queries=400)[0]
+
+
 def test_partial_trajectory_and_bad_manifests(tmp_path):
     """Only listed stages count (a partially written trajectory); a wrong format string, a missing
     stage file or a missing stage 0 is refused with the manifest's path in the message."""

@@ -153,6 +153,32 @@ def test_evaluate_trajectory_and_command(tmp_path, capsys):
     assert "CD x1e-4" in capsys.readouterr().out
 
 
+def test_floating_fragment_and_unit_box(tmp_path):
+    """A prediction made of the GT stage plus a small sphere far from it (defect 5 of issue 24): two components;
+    its largest component is the GT stage and scores 0, while the whole prediction's CD is large; the unit-box
+    numbers equal an evaluation whose normalization maps the stage-0 box to extent 1 (CD / 1.8^2, EMD / 1.8);
+    every entry carries the sampling floor of its stage."""
+    s0 = random_shape(5, subdivisions=3)
+    s0 = s0.with_vertices(s0.vertices * 30.0 + 7.0)
+    s1 = s0.with_vertices(0.5 * (s0.vertices - 7.0) + 7.0)
+    gt = _write_traj(tmp_path / "gt", [s0, s1], [1.0, 0.4])
+    blob = icosphere(2, radius=3.0)
+    fragment = (np.concatenate([s1.vertices, blob.vertices + [120.0, 7.0, 7.0]]),
+                np.concatenate([s1.faces, blob.faces + s1.num_vertices]))
+    rep = evaluate_trajectory({0.4: fragment, 1.0: s0}, gt, n_points=3000, n_emd=300)
+    frag, whole = rep["per_t"][1], rep["per_t"][0]
+    assert frag["components"] == 2 and whole["components"] == 1
+    assert frag["largest"]["cd_x1e4"] == 0.0 and frag["largest"]["emd_x1e2"] == 0.0
+    assert frag["cd_x1e4"] > 100.0 * frag["floor"]["cd_x1e4"] > 0.0
+    assert rep["mean"]["largest"]["cd_x1e4"] == 0.0 and rep["mean"]["cd_x1e4"] > 0.0
+    lo, hi = s0.vertices.min(0).astype(np.float64), s0.vertices.max(0).astype(np.float64)
+    unit = compare_meshes(fragment, s1, n_points=3000, n_emd=300, normalization=(0.5 * (lo + hi), 1.0 / (hi - lo).max()))
+    assert frag["unit_box"]["cd_x1e4"] == pytest.approx(unit["cd_x1e4"], rel=1e-9)
+    assert frag["unit_box"]["emd_x1e2"] == pytest.approx(unit["emd_x1e2"], rel=1e-9)
+    assert frag["unit_box"]["nce"] == pytest.approx(unit["nce"], rel=1e-6)
+    assert frag["floor"]["cd_x1e4"] != whole["floor"]["cd_x1e4"]  # each stage its own floor
+
+
 def test_pca_and_pearson_against_oracles():
     """PCA recovers the direction of rank-one data with all the variance, scores reproduce the centred
     data; pearson agrees with scipy.stats.pearsonr."""
