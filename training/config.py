@@ -60,6 +60,8 @@ class ModelConfig:
         chunk_size: queries decoded per chunk by the query decoder.
         time_tokens: tokens the time embedding produces (C-VAE-I and C-VAE-II).
         time_freq_dim: width of the sinusoidal time features.
+        time_scale: radians per unit of t of the fastest time feature: small enough that neighbouring stages get
+            nearly the same features, so that a t between the stages trained on is an interpolation.
         modulator_depth: cross-attention blocks of the C-VAE-II latent modulator.
         logvar_init: initial log-variance of the posterior (the bias of the bottleneck's log-variance half, and of
             C-VAE-II's z_ctl): training decodes posterior samples, inference the mean, and both must see the
@@ -84,6 +86,7 @@ class ModelConfig:
     chunk_size: int = 32768
     time_tokens: int = 4
     time_freq_dim: int = 256
+    time_scale: float = 10.0
     modulator_depth: int = 2
     logvar_init: float = -8.0
     sdf_init: float = 0.0
@@ -257,6 +260,8 @@ class TrainConfig:
             raise ValueError(f"model.width ({m.width}) must be a multiple of model.heads ({m.heads})")
         if (m.width // m.heads) % 2:
             raise ValueError(f"model.width / model.heads must be even, got {m.width // m.heads}")
+        if not m.time_scale > 0:
+            raise ValueError(f"model.time_scale must be > 0, got {m.time_scale}")
         if m.time_freq_dim % 2:
             raise ValueError(f"model.time_freq_dim must be even, got {m.time_freq_dim}")
         if m.kind in ("cvae1", "cvae2") and m.time_tokens < 1:

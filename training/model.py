@@ -197,7 +197,7 @@ def timestep_embedding(t: torch.Tensor, dim: int, *, scale: float = 1000.0,
                        max_period: float = 10000.0) -> torch.Tensor:
     """Sinusoidal features of the normalised time: (B,) t in [0, 1] -> (B, dim) ``[cos, sin]``.
 
-    ``t`` is scaled by ``scale`` first so that t in [0, 1] spans the usual diffusion-timestep range.
+    ``t`` is scaled by ``scale`` first; the fastest feature turns ``scale`` radians per unit of t.
     """
     half = dim // 2
     freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
@@ -208,18 +208,22 @@ def timestep_embedding(t: torch.Tensor, dim: int, *, scale: float = 1000.0,
 class TimeEmbedding(nn.Module):
     """Normalised evolution time t (Eq. (7)) -> ``num_tokens`` tokens of ``width`` channels.
 
-    Sinusoidal features (:func:`timestep_embedding`) pass an MLP whose output is split into tokens.
+    Sinusoidal features (:func:`timestep_embedding`, fastest ``scale`` radians per unit of t) pass an MLP whose
+    output is split into tokens. A trajectory is seen at 9-33 values of t and decoded at any other, so the
+    features must change little between neighbouring stages: at ``scale = 10`` the fastest turns 0.3 rad over a
+    32-stage step, where the diffusion-style 1000 turns 31 rad and makes every unseen t a new input.
     """
 
-    def __init__(self, width: int, *, num_tokens: int = 4, freq_dim: int = 256) -> None:
+    def __init__(self, width: int, *, num_tokens: int = 4, freq_dim: int = 256, scale: float = 10.0) -> None:
         super().__init__()
         self.num_tokens = num_tokens
         self.freq_dim = freq_dim
+        self.scale = scale
         self.mlp = nn.Sequential(nn.Linear(freq_dim, width), nn.SiLU(), nn.Linear(width, num_tokens * width))
 
     def forward(self, t: torch.Tensor) -> torch.Tensor:
         """(B,) float t -> (B, num_tokens, width)."""
-        emb = self.mlp(timestep_embedding(t, self.freq_dim))
+        emb = self.mlp(timestep_embedding(t, self.freq_dim, scale=self.scale))
         return emb.view(t.shape[0], self.num_tokens, -1)
 
 
@@ -516,6 +520,7 @@ class VecSetVAE(_LatentSetModel):
         time_tokens: 0 for the plain VAE; > 0 adds the time embedding and the encoder's time
             cross-attention blocks.
         time_freq_dim: sinusoidal time feature width.
+        time_scale: radians per unit of t of the fastest time feature (see :class:`TimeEmbedding`).
         logvar_init: initial log-variance of the posterior (see :class:`KLBottleneck`).
         sdf_init: SDF an untrained decoder predicts everywhere (see :class:`QueryDecoder`).
     """
@@ -523,14 +528,15 @@ class VecSetVAE(_LatentSetModel):
     def __init__(self, *, width: int, heads: int, num_latents: int, latent_dim: int, encoder_depth: int,
                  decoder_depth: int, num_freqs: int = 8, include_pi: bool = False, mlp_ratio: float = 4.0,
                  qkv_bias: bool = False, qk_norm: bool = True, chunk_size: int = 32768, time_tokens: int = 0,
-                 time_freq_dim: int = 256, logvar_init: float = -8.0, sdf_init: float = 0.0) -> None:
+                 time_freq_dim: int = 256, time_scale: float = 10.0, logvar_init: float = -8.0,
+                 sdf_init: float = 0.0) -> None:
         super().__init__()
         block = dict(mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.num_latents = num_latents
         self.latent_dim = latent_dim
         self.time_conditioned = time_tokens > 0
         self.embedder = FourierEmbedder(num_freqs=num_freqs, include_pi=include_pi)
-        self.time_embed = (TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim)
+        self.time_embed = (TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim, scale=time_scale)
                            if self.time_conditioned else None)
         self.encoder = PointEncoder(embedder=self.embedder, width=width, heads=heads, num_latents=num_latents,
                                     depth=encoder_depth, condition_dim=width if self.time_conditioned else None,
@@ -578,10 +584,10 @@ class CVAE1(VecSetVAE):
     Takes the :class:`VecSetVAE` arguments; ``time_tokens`` must be >= 1.
     """
 
-    def __init__(self, *, time_tokens: int = 4, time_freq_dim: int = 256, **backbone) -> None:
+    def __init__(self, *, time_tokens: int = 4, time_freq_dim: int = 256, time_scale: float = 10.0, **backbone) -> None:
         if time_tokens < 1:
             raise ValueError(f"CVAE1: time_tokens must be >= 1, got {time_tokens}")
-        super().__init__(time_tokens=time_tokens, time_freq_dim=time_freq_dim, **backbone)
+        super().__init__(time_tokens=time_tokens, time_freq_dim=time_freq_dim, time_scale=time_scale, **backbone)
 
 
 class CVAE2(_LatentSetModel):
@@ -596,6 +602,7 @@ class CVAE2(_LatentSetModel):
         base: the pre-trained plain VAE (not time-conditioned); its decoder is copied, its encoder frozen.
         time_tokens: time tokens.
         time_freq_dim: sinusoidal time feature width.
+        time_scale: radians per unit of t of the fastest time feature (see :class:`TimeEmbedding`).
         modulator_depth: cross-attention blocks of the modulator.
         heads: heads of the modulator (default: those of the base encoder).
         logvar_init: initial log-variance of z_ctl (see :class:`LatentModulator`).
@@ -603,8 +610,8 @@ class CVAE2(_LatentSetModel):
 
     time_conditioned = True
 
-    def __init__(self, *, base: VecSetVAE, time_tokens: int = 4, time_freq_dim: int = 256, modulator_depth: int = 2,
-                 heads: int | None = None, logvar_init: float = -8.0) -> None:
+    def __init__(self, *, base: VecSetVAE, time_tokens: int = 4, time_freq_dim: int = 256, time_scale: float = 10.0,
+                 modulator_depth: int = 2, heads: int | None = None, logvar_init: float = -8.0) -> None:
         super().__init__()
         if not isinstance(base, VecSetVAE) or base.time_conditioned:
             raise ValueError("CVAE2: base must be a plain (not time-conditioned) VecSetVAE")
@@ -617,7 +624,7 @@ class CVAE2(_LatentSetModel):
         self.frozen = nn.ModuleDict({"embedder": base.embedder, "encoder": base.encoder, "bottleneck": base.bottleneck})
         self.frozen.requires_grad_(False)
         self.frozen.eval()
-        self.time_embed = TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim)
+        self.time_embed = TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim, scale=time_scale)
         self.modulator = LatentModulator(latent_dim=base.latent_dim, width=width, heads=heads, depth=modulator_depth,
                                          logvar_init=logvar_init)
 
@@ -669,7 +676,8 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
     if config.kind == "vae":
         return VecSetVAE(**backbone)
     if config.kind == "cvae1":
-        return CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim, **backbone)
+        return CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim, time_scale=config.time_scale,
+                     **backbone)
     if config.kind != "cvae2":
         raise ValueError(f"unknown model kind {config.kind!r}; expected 'vae', 'cvae1' or 'cvae2'")
     base = VecSetVAE(**backbone)
@@ -692,4 +700,4 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
             raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")
         base.load_state_dict(ckpt["model"])
     return CVAE2(base=base, time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
-                 modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)
+                 time_scale=config.time_scale, modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)

@@ -113,6 +113,11 @@ def test_fourier_and_time_embeddings():
     assert math.isclose(float(te[1, 0]), math.cos(500.0), rel_tol=1e-5)
     tok = TimeEmbedding(16, num_tokens=3, freq_dim=8)(torch.tensor([0.1, 0.9]))
     assert tok.shape == (2, 3, 16) and tok.dtype == torch.float32
+    # neighbouring stages of a 32-stage trajectory get nearly the same features (|d feature| <= scale * dt)
+    t = torch.linspace(0.0, 1.0, 33)
+    feats = timestep_embedding(t, 256, scale=TimeEmbedding(16).scale)
+    assert float((feats[1:] - feats[:-1]).abs().max()) <= 10.0 / 32 + 1e-6
+    assert float((timestep_embedding(t, 256)[1:] - timestep_embedding(t, 256)[:-1]).abs().max()) > 1.0
 
 
 def test_attention_matches_explicit_softmax():
