@@ -15,7 +15,7 @@ import warp as wp
 import vnc_warp as vw
 
 flow_mod = importlib.import_module("vnc_warp.flow")
-from vnc_warp.flow import FlowError, Trajectory, flow, flow_steps, sphericity, total_complexity
+from vnc_warp.flow import Trajectory, flow, flow_steps, sphericity, total_complexity
 from vnc_warp.remesh import surface_problems
 from vnc_warp.shapes import random_shape
 
@@ -83,7 +83,8 @@ def test_save_load_roundtrip(trajectory):
         np.testing.assert_array_equal(a.vertices, b.vertices)
         np.testing.assert_array_equal(a.faces, b.faces)
     man = json.loads((out / "manifest.json").read_text())
-    assert man["format"] == "vnc-warp-trajectory/1" and man["complete"]
+    assert man["format"] == "vnc-warp-trajectory/2" and man["complete"] and man["writing"] is None
+    assert all(len(r["sha256"]) == 64 for r in man["stages"])
     assert all(len(r["history"]) >= 1 for r in man["stages"][1:])
 
 
@@ -118,7 +119,7 @@ def test_resume_after_interruption_gives_same_result(shape, trajectory, tmp_path
 def test_resume_refuses_a_different_run(shape, trajectory):
     """An output folder holding a run with other parameters is refused, not overwritten."""
     _, out = trajectory
-    with pytest.raises(FlowError, match="different run"):
+    with pytest.raises(vw.TrajectoryError, match="different run"):
         flow(shape, stages=STAGES + 1, device="cpu", progress=False, out_dir=out)
 
 
@@ -219,7 +220,7 @@ def test_flow_batch_two_processes_split_without_overlap(tmp_path):
     ranks = {m["mesh"]: m["rank"] for m in batch["meshes"]}
     assert set(ranks.values()) == {0, 1}
     for s in range(3):
-        assert Trajectory.load(tmp_path / "out" / f"shape{s}").complete
+        assert Trajectory.load(tmp_path / "out" / f"shape{s}.obj").complete
     subprocess.run(cmd, check=True, env=env, capture_output=True, timeout=300)
     again = json.loads((tmp_path / "out" / "batch.json").read_text())
     assert {m["status"] for m in again["meshes"]} == {"skipped"}

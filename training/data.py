@@ -1,13 +1,14 @@
 """Truncated-SDF training data from VNC-Flow trajectories (Sec. 3.3, trained with L_tsdf).
 
-A trajectory directory (written by VNC-Flow, Algorithm 1) holds ``manifest.json`` =
-``{"format": "vnc-warp-trajectory/1", "stages": [{"index": i, "t": t, "file": "stage_000.ply"}, ...]}``
-with stage 0 at ``t = 1`` (Eq. (7)); only the stages listed count. :func:`build_dataset` samples every
+A trajectory directory (written by VNC-Flow, Algorithm 1) holds stage meshes and the ``manifest.json`` that
+lists them with their times and checksums, stage 0 at ``t = 1`` (Eq. (7)); it is read through
+:mod:`vnc_warp.trajectory` (the one trajectory format), which refuses damaged or foreign stage files, and only
+the stages listed count. :func:`build_dataset` samples every
 stage once into ``<out>/<shape>/stage_<index>.npz`` and writes ``<out>/index.json``; every stage of a
 trajectory shares the normalization of its stage 0 (``x_norm = (x - center) * scale`` with
 ``center`` the bounding-box centre and ``scale = 1.8 / max extent``), so ``t`` is the only thing that
 changes along a trajectory. :class:`TrajectoryDataset` reads the samples, checks each file against
-its SHA-256 in the index, and draws random subsets per item.
+its SHA-256 in the index and its arrays for finiteness, and draws random subsets per item.
 
 Sample file keys: ``surface`` (Ns, 6) float32 xyz + unit normal, ``queries`` (Nq, 3) float32,
 ``tsdf`` (Nq,) float32 in [-truncation, truncation] (negative inside), ``near`` (Nq,) bool (query drawn
@@ -22,7 +23,6 @@ import json
 import os
 import warnings
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,14 +31,18 @@ import torch
 import warp as wp
 
 from vnc_warp._device import get_device
-from vnc_warp.mesh import Mesh, MeshError, load_mesh
+from vnc_warp._files import output_dir
+from vnc_warp.mesh import Mesh, MeshError
 from vnc_warp.sdf import signed_distance
+from vnc_warp.trajectory import FORMAT as TRAJECTORY_FORMAT
+from vnc_warp.trajectory import Trajectory, TrajectoryError, TrajectoryStage, read_trajectory
 
 __all__ = [
     "DATASET_FORMAT",
     "TRAJECTORY_FORMAT",
     "DatasetError",
     "Trajectory",
+    "TrajectoryError",
     "TrajectoryStage",
     "TrajectoryDataset",
     "build_dataset",
@@ -48,79 +52,12 @@ __all__ = [
     "verify_dataset",
 ]
 
-TRAJECTORY_FORMAT = "vnc-warp-trajectory/1"
 DATASET_FORMAT = "vnc-warp-tsdf/1"
 _SAMPLE_KEYS = ("surface", "queries", "tsdf", "near", "t", "config")
 
 
 class DatasetError(ValueError):
     """A dataset or trajectory that cannot be used; the message names the file and what is wrong."""
-
-
-@dataclass(frozen=True)
-class TrajectoryStage:
-    """One finished stage of a trajectory: stage ``index``, normalized time ``t`` (Eq. (7)), mesh file."""
-
-    index: int
-    t: float
-    path: Path
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """A VNC-Flow trajectory read from its manifest; ``stages[0]`` is stage 0 (``t = 1``)."""
-
-    root: Path
-    name: str
-    source: str
-    stages: tuple[TrajectoryStage, ...]
-
-    def load_stage(self, position: int) -> Mesh:
-        """The mesh of ``stages[position]``."""
-        st = self.stages[position]
-        return load_mesh(st.path, name=f"{self.name}/{st.path.name}")
-
-
-def read_trajectory(traj_dir: str | os.PathLike) -> Trajectory:
-    """Read a trajectory manifest; the shape name is the directory name.
-
-    Raises:
-        FileNotFoundError: no ``manifest.json`` or a listed stage file is missing.
-        DatasetError: unreadable manifest, wrong format string, no stages, missing stage 0,
-            missing/duplicate stage keys or non-finite ``t``.
-    """
-    root = Path(traj_dir).resolve()
-    path = root / "manifest.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"trajectory manifest not found: {path}")
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: unreadable manifest ({exc})") from exc
-    if not isinstance(manifest, dict) or manifest.get("format") != TRAJECTORY_FORMAT:
-        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise DatasetError(f"{path}: format must be {TRAJECTORY_FORMAT!r}, got {got!r}")
-    raw = manifest.get("stages")
-    if not isinstance(raw, list) or not raw:
-        raise DatasetError(f"{path}: no finished stages listed")
-    stages = []
-    for k, st in enumerate(raw):
-        if not isinstance(st, dict) or not {"index", "t", "file"} <= st.keys():
-            raise DatasetError(f"{path}: stages[{k}] needs keys 'index', 't' and 'file', got {st!r}")
-        t = float(st["t"])
-        if not np.isfinite(t):
-            raise DatasetError(f"{path}: stages[{k}] has non-finite t = {st['t']!r}")
-        file = root / st["file"]
-        if not file.is_file():
-            raise FileNotFoundError(f"{path}: stages[{k}] lists {st['file']!r}, which does not exist")
-        stages.append(TrajectoryStage(int(st["index"]), t, file))
-    stages.sort(key=lambda s: s.index)
-    indices = [s.index for s in stages]
-    if len(set(indices)) != len(indices):
-        raise DatasetError(f"{path}: duplicate stage indices {indices}")
-    if indices[0] != 0:
-        raise DatasetError(f"{path}: stage 0 is not listed (stages {indices}); its normalization is needed")
-    return Trajectory(root, root.name, str(manifest.get("source", "")), tuple(stages))
 
 
 def normalization(mesh: Mesh) -> tuple[np.ndarray, float]:
@@ -189,7 +126,16 @@ def _read_sample(path: Path, expected_sha: str | None = None) -> dict[str, np.nd
             or near.dtype != np.bool_):
         raise DatasetError(f"{path}: bad array shapes/dtypes: surface {s.shape} {s.dtype}, queries {q.shape} "
                            f"{q.dtype}, tsdf {d.shape} {d.dtype}, near {near.shape} {near.dtype}")
+    _check_finite(arrays, path)
     return arrays
+
+
+def _check_finite(arrays: dict[str, np.ndarray], where) -> None:
+    """Refuse NaN or infinite values: one would make every loss it enters NaN, silently, until the end of a run."""
+    for key in ("surface", "queries", "tsdf", "t"):
+        bad = int(np.size(arrays[key]) - np.count_nonzero(np.isfinite(arrays[key])))
+        if bad:
+            raise DatasetError(f"{where}: {bad} non-finite value(s) (NaN or infinite) in {key!r}")
 
 
 def _write_sample(path: Path, arrays: dict[str, np.ndarray]) -> str:
@@ -308,7 +254,10 @@ def build_dataset(
     Raises:
         ValueError: bad settings, duplicate shape names, or ``out_dir`` built with other settings
             (unless ``overwrite``).
-        DatasetError / FileNotFoundError / MeshError: unusable trajectories (named in the message).
+        DatasetError / TrajectoryError / FileNotFoundError / MeshError: unusable trajectories or samples (named
+            in the message), e.g. stage files their manifest does not own or that fail their checksum, or samples
+            with NaN.
+        OSError: ``out_dir`` cannot be created or written to (checked before anything else).
     """
     from tqdm.auto import tqdm
 
@@ -326,13 +275,12 @@ def build_dataset(
               "noise": noise, "truncation": float(truncation), "seed": int(seed)}
     if num_reference:
         config["num_reference"] = int(num_reference)
+    out = output_dir(out_dir, what="dataset folder")
     trajs = [read_trajectory(d) for d in traj_dirs]
     names = [tr.name for tr in trajs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"build_dataset: trajectory directory names must be unique, repeated: {dup}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     shapes: dict[str, dict] = {}
     if (out / "index.json").is_file():
         try:
@@ -359,7 +307,7 @@ def build_dataset(
             rel = f"{tr.name}/stage_{st.index:03d}.npz"
             path = out / rel
             stage_config = dict(config, center=center.tolist(), scale=scale, t=st.t, index=st.index,
-                                source_sha256=_sha256(st.path))
+                                source_sha256=st.sha256 or _sha256(st.path))
             sha, stale = None, False
             if path.is_file():
                 try:
@@ -380,6 +328,7 @@ def build_dataset(
                                        reference=reference, num_reference=num_reference)
                 arrays["t"] = np.float32(st.t)
                 arrays["config"] = np.array(json.dumps(stage_config))
+                _check_finite(arrays, f"{st.path} (sampled for {rel})")
                 sha = _write_sample(path, arrays)
                 counts["rebuilt" if stale else "built"] += 1
             else:
@@ -482,6 +431,13 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     def item_ids(self) -> list[tuple[int, int]]:
         """``(shape_id, stage)`` of every item, without reading any file."""
         return [(sid, int(st["index"])) for sid, st in self.items] * self.repeats
+
+    def item_file(self, shape_id: int, stage: int) -> str:
+        """The sample file of a shape's stage (for messages that must say where a value came from)."""
+        for st in self.shapes[shape_id]["stages"]:
+            if int(st["index"]) == stage:
+                return str(self.root / st["file"])
+        return f"{self.root}: shape {self.shape_names[shape_id]} stage {stage}"
 
     def preload(self) -> None:
         """Read and check every sample file into the cache now (``cache=True`` only).

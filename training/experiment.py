@@ -667,7 +667,10 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
         log(f"  {kind}: training to step {cfg.optim.total_steps} (from {done}), budget "
             f"{'none' if budget_s is None else f'{budget_s:.0f} s'}")
         t0 = time.perf_counter()
-        train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
+        with warnings.catch_warnings():
+            # the calibration ran under the nominal schedule; the planned one taking over is the design
+            warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
+            train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
         seconds += time.perf_counter() - t0
     plan["seconds"] = plan.get("seconds", 0.0) + seconds
     plan_path.write_text(json.dumps(plan, indent=1))

@@ -42,3 +42,4 @@ from ._replay import set_graph_replay
 from . import figures
 # `vw.flow` is the function (the contract); the module stays importable as `vnc_warp.flow`.
 from .flow import FlowError, FlowParams, Trajectory, flow, flow_steps, sphericity, total_complexity  # noqa: E402
+from .trajectory import TrajectoryError  # noqa: E402

@@ -25,13 +25,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+def user_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions that mean bad input or an unusable file or folder: a one-line message and exit code 2.
+
+    ValueError covers MeshError, TrajectoryError, DatasetError, CheckpointError and TrainingError; OSError the
+    files and folders (missing, unwritable, under a file). Anything else is a bug and keeps its traceback.
+    """
     from .flow import FlowError
 
+    return (ValueError, OSError, FlowError)
+
+
+def main(argv=None) -> int:
+    """Run one command: its exit code, 2 on a user error (one line on stderr), 130 when interrupted."""
+    args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)
-    except (FileNotFoundError, ValueError, FlowError) as exc:  # MeshError is a ValueError
+    except KeyboardInterrupt as exc:
+        detail = f": {exc}" if str(exc) else ""
+        print(f"vnc-warp {args.command}: interrupted{detail}", file=sys.stderr)
+        return 130
+    except user_errors() as exc:
         print(f"vnc-warp {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

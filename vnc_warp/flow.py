@@ -26,11 +26,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -41,10 +40,9 @@ from ._device import get_device
 from .mesh import Mesh, MeshError, from_arrays, load_mesh
 from .operators import vnc_soft
 from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
+from .trajectory import Trajectory, resume
 
 __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "total_complexity", "sphericity"]
-
-FORMAT = "vnc-warp-trajectory/1"
 
 
 class FlowError(RuntimeError):
@@ -126,73 +124,6 @@ def total_complexity(mesh: Mesh, taus, *, kappa: float = 6.0, positions: wp.arra
     """``S = sum_k s(v_k)``: the total VNC-AUC (Eq. 4 at tau_max) of a mesh, the numerator of Eq. (7)."""
     curve = scale_curve(mesh, taus, "soft", kappa=kappa, device=device, positions=positions)
     return float(np.sum(vnc_auc(curve).numpy(), dtype=np.float64))
-
-
-@dataclass
-class Trajectory:
-    """A VNC-Flow trajectory: meshes, their normalized times and per-stage records.
-
-    Attributes:
-        meshes: N+1 meshes; ``meshes[0]`` is the remeshed input (t = 1).
-        t: (N+1,) float64 normalized times (Eq. 7), decreasing from 1.
-        records: one dict per stage (t, S, iterations, seconds, sphericity, Euler characteristic, status, and ``history``: the
-            ``[iteration, S]`` pairs evaluated during the stage, the first taken after the stage's remesh).
-        info: trajectory-level facts (params, scales, S_init, phi_stage, source, version, device).
-    """
-
-    meshes: list
-    t: np.ndarray
-    records: list = field(default_factory=list)
-    info: dict = field(default_factory=dict)
-
-    @property
-    def complete(self) -> bool:
-        return len(self.meshes) == self.info.get("params", {}).get("stages", -1) + 1
-
-    def save(self, out_dir: str | os.PathLike) -> None:
-        """Write every stage mesh (PLY) that is not on disk yet, then the manifest (atomically)."""
-        os.makedirs(out_dir, exist_ok=True)
-        for rec, m in zip(self.records, self.meshes):
-            p = os.path.join(out_dir, rec["file"])
-            if not os.path.exists(p):
-                _atomic_mesh(m, p)
-        _write_manifest(out_dir, self)
-
-    @staticmethod
-    def load(out_dir: str | os.PathLike) -> "Trajectory":
-        """Read a trajectory written by :meth:`save` or ``vnc-warp flow`` (only the finished stages)."""
-        path = os.path.join(out_dir, "manifest.json")
-        if not os.path.exists(path):
-            raise FileNotFoundError(f"no trajectory manifest at {path}")
-        with open(path) as fh:
-            man = json.load(fh)
-        if man.get("format") != FORMAT:
-            raise FlowError(f"{path}: not a {FORMAT} manifest (format={man.get('format')!r})")
-        meshes = []
-        for rec in man["stages"]:
-            p = os.path.join(out_dir, rec["file"])
-            if not os.path.exists(p):
-                raise FlowError(f"{path}: stage {rec['index']} lists {rec['file']}, which is missing")
-            meshes.append(load_mesh(p, merge=False, name=rec["file"]))
-        info = {k: v for k, v in man.items() if k != "stages"}
-        return Trajectory(meshes, np.array([r["t"] for r in man["stages"]], dtype=np.float64), man["stages"], info)
-
-
-def _atomic_mesh(mesh: Mesh, path: str) -> None:
-    tmp = path + ".tmp.ply"
-    mesh.save(tmp)
-    os.replace(tmp, path)
-
-
-def _write_manifest(out_dir, traj: Trajectory) -> None:
-    man = dict(traj.info)
-    man["format"] = FORMAT
-    man["stages"] = traj.records
-    man["complete"] = traj.complete
-    tmp = os.path.join(out_dir, "manifest.json.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(man, fh, indent=1)
-    os.replace(tmp, os.path.join(out_dir, "manifest.json"))
 
 
 def _mesh_digest(mesh: Mesh) -> str:
@@ -359,8 +290,9 @@ def flow(
         stages: number of stages N.
         faces: face count of the remeshed states (None: the input's).
         device: Warp device.
-        out_dir: write each stage as soon as it is finished (PLY + ``manifest.json``); if the folder already
-            holds a run with the same input and parameters, resume after its last finished stage.
+        out_dir: write each stage as soon as it is finished (PLY + ``manifest.json``, :mod:`vnc_warp.trajectory`);
+            if the folder already holds a run with the same input and parameters, resume after its last finished
+            stage. The folder is checked before anything is computed.
         progress: show a progress bar (stage, iterations, t, seconds).
         **params: any other :class:`FlowParams` field.
 
@@ -369,7 +301,9 @@ def flow(
 
     Raises:
         MeshError: the input is not watertight and ``remesh=False``, or is otherwise invalid.
-        FlowError: a VNC-Flow state failed validity (a bug), or ``out_dir`` holds a different run.
+        FlowError: a VNC-Flow state failed validity (a bug).
+        TrajectoryError: ``out_dir`` holds a different run, stage files it does not own, or damaged files.
+        OSError: ``out_dir`` cannot be created or written to.
     """
     from .remesh import sdf_remesh
 
@@ -381,7 +315,7 @@ def flow(
                         "VNC-Flow needs a closed surface: enable remesh (SDF remeshing closes it)")
     info = {"params": _params_key(p), "source": src.name, "source_digest": _mesh_digest(src),
             "version": _version(), "device": str(device)}
-    traj = _resume(out_dir, info) if out_dir is not None else None
+    traj = resume(out_dir, info) if out_dir is not None else None
     t_start = time.perf_counter()
     if traj is None:
         m0 = sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src
@@ -480,16 +414,6 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, phi_stage: float, p: Flo
     return {"index": i, "t": S_cur / S_init, "S": S_cur, "target_t": max(target, 0.0) / S_init, "iterations": it,
             "status": status, "sphericity": sphericity(state), "vertices": state.num_vertices,
             "faces": state.num_faces, "euler": _euler(state), "history": history, "_mesh": state}
-
-
-def _resume(out_dir, info: dict) -> Trajectory | None:
-    if not os.path.exists(os.path.join(out_dir, "manifest.json")):
-        return None
-    traj = Trajectory.load(out_dir)
-    for key in ("params", "source_digest"):
-        if traj.info.get(key) != info[key]:
-            raise FlowError(f"{out_dir} holds a different run ({key} differs); use a new output folder")
-    return traj
 
 
 def _version() -> str:

@@ -233,7 +233,10 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
         raise MeshError(f"{name}: {zero.size} degenerate face(s) have zero area, e.g. faces {_first(zero)}; "
                         "remove them first (trimesh: mesh.update_faces(mesh.nondegenerate_faces()))")
     f = f.astype(np.int32)
-    topo, inconsistent = _build_topology(f, v)
+    try:
+        topo, inconsistent = _build_topology(f, v)
+    except MeshError as exc:
+        raise MeshError(f"{name}: {exc}") from None
     if inconsistent:
         raise MeshError(f"{name}: inconsistent winding: {inconsistent} interior edge(s) are traversed in the same "
                         "direction by both their faces; fix it first (trimesh.repair.fix_winding)")

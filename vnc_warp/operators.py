@@ -136,6 +136,14 @@ def _positions(mesh: Mesh, positions, device) -> wp.array:
     return positions
 
 
+def _check_values(mesh: Mesh, x: wp.array, radius: wp.array) -> None:
+    """Refuse NaN or infinite positions and scales that are not positive and finite, given on the device (the grid
+    and dense traversals check them while reading their bounds, :func:`vnc_warp._pairs.bounds`; the BVH one
+    calls this). A mesh's own vertices were checked when it was made."""
+    if not _own_vertices(mesh, x) or isinstance(radius, wp.array):
+        _pairs.bounds(x, radius)
+
+
 def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = None) -> wp.array:
     """A positive, finite scalar or (count,) array as a float32 wp.array on ``device`` (a scalar's array from
     ``pool``, when given)."""
@@ -357,7 +365,10 @@ def _host_scalar(value, what: str) -> float | None:
     """``value`` as a float when it is a scalar given on the host (checked positive and finite), else None."""
     if isinstance(value, wp.array) or (hasattr(value, "requires_grad") and value.requires_grad) or np.ndim(value) != 0:
         return None
-    v = float(value.detach().cpu() if hasattr(value, "detach") else value)
+    try:
+        v = float(value.detach().cpu() if hasattr(value, "detach") else value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{what} must be a positive number or an array of per-point values, got {value!r}") from None
     if not (np.isfinite(v) and v > 0.0):
         raise ValueError(f"{what} must be positive and finite, got {v}")
     return v
@@ -381,6 +392,7 @@ def _soft_call(mesh, x, tau, kappa: float, strategy: str, pool, fresh: bool):
     else:
         outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
     if strategy == "bvh":
+        _check_values(mesh, x, tau_arr)
         backward = _soft_bvh(x, tau_arr, kappa, f, outputs)
     else:
         b = _host_bounds(mesh, x, _radius_stats(tau)) or _pairs.bounds(x, tau_arr)
@@ -491,6 +503,7 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     outputs = [_pairs._empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     outputs += [_pairs._empty(None if fresh else pool, device, P, dt) for dt in (wp.float32, wp.vec3)]
     if strategy == "bvh":
+        _check_values(mesh, x, radius)
         bvh = _segment_bvh(x, f)
         wp.launch(_k.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
                   outputs=outputs[:3], device=device)
@@ -631,6 +644,9 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, s
         if not np.isfinite(pts).all():
             raise ValueError("points contain NaN or infinite coordinates")
     P = pts.shape[0]
+    if P == 0:
+        _per_point(radius, 0, device, "radius")
+        return wp.empty(0, dtype=wp.float32, device=device)
     points_wp = _mesh_vertices(mesh, device) if points is None else wp.array(
         np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
     r = _per_point(radius, P, device, "radius")

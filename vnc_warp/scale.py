@@ -13,8 +13,8 @@ from vnc_warp.kernels import vnc as _k
 from . import _pairs
 from ._device import get_device
 from .mesh import Mesh
-from .operators import (_ball_sources, _edge_fields, _host_bounds, _midpoint_bvh, _positions, _segment_bvh,
-                        _soft_sources)
+from .operators import (_ball_sources, _check_values, _edge_fields, _host_bounds, _midpoint_bvh, _positions,
+                        _segment_bvh, _soft_sources)
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -103,6 +103,7 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
     taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
     H = wp.empty((S, V), dtype=wp.float32, device=device)
     if strategy == "bvh":
+        _check_values(mesh, x, taus_wp)
         _scale_curve_bvh(x, f, taus_wp, variant, kappa, H)
     else:
         _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool)

@@ -15,6 +15,7 @@ from vnc_warp.shapes import icosphere
 from vnc_warp.training import data as data_mod
 from vnc_warp.training.data import (DatasetError, TrajectoryDataset, build_dataset, normalization, read_trajectory,
                                      verify_dataset)
+from vnc_warp.trajectory import Trajectory, TrajectoryError
 
 CENTER = np.array([1.0, -2.0, 0.5])
 RADIUS = 0.5
@@ -31,15 +32,16 @@ def _stages():
 
 
 def write_trajectory(root, meshes, ts, *, listed=None):
-    """A fake VNC-Flow trajectory: stage files plus a manifest listing ``listed`` stages (default all)."""
-    root.mkdir(parents=True)
-    stages = []
-    for i, (m, t) in enumerate(zip(meshes, ts)):
-        m.save(root / f"stage_{i:03d}.ply")
-        stages.append({"index": i, "t": t, "file": f"stage_{i:03d}.ply", "iterations": 3})
-    n = len(stages) if listed is None else listed
-    (root / "manifest.json").write_text(json.dumps({"format": "vnc-warp-trajectory/1", "source": "fake.obj",
-                                                    "stages": stages[:n], "num_stages": 2}))
+    """A trajectory folder written by vnc_warp.trajectory: ``listed`` stages finished (default all) and, when fewer,
+    the next stage's file on disk but still being written (a run stopped while saving it)."""
+    n = len(meshes) if listed is None else listed
+    records = [{"index": i, "t": t, "file": f"stage_{i:03d}.ply", "iterations": 3} for i, t in enumerate(ts)]
+    info = {"source": "fake.obj", "params": {"stages": len(meshes) - 1}}
+    Trajectory(list(meshes[:n]), np.array(ts[:n]), records[:n], info).save(root)
+    if n < len(meshes):
+        meshes[n].save(root / records[n]["file"])
+        manifest = json.loads((root / "manifest.json").read_text())
+        (root / "manifest.json").write_text(json.dumps(dict(manifest, writing=records[n]["file"])))
     return root
 
 
@@ -231,7 +233,7 @@ def test_on_surface_points_are_the_items_own(built):
 
 
 def test_partial_trajectory_and_bad_manifests(tmp_path):
-    """Only listed stages count (a partially written trajectory); a wrong format string, a missing
+    """Only listed stages count (a trajectory stopped while writing a stage); a wrong format string, a missing
     stage file or a missing stage 0 is refused with the manifest's path in the message."""
     traj = write_trajectory(tmp_path / "partial", _stages(), [1.0, 0.55], listed=1)
     tr = read_trajectory(traj)
@@ -240,13 +242,14 @@ def test_partial_trajectory_and_bad_manifests(tmp_path):
     assert scale == pytest.approx(1.8 / np.ptp(tr.load_stage(0).vertices, axis=0).max(), rel=1e-6)
     manifest = json.loads((traj / "manifest.json").read_text())
     (traj / "manifest.json").write_text(json.dumps(dict(manifest, format="other/2")))
-    with pytest.raises(DatasetError, match="format must be"):
+    with pytest.raises(TrajectoryError, match="format must be"):
         read_trajectory(traj)
     (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], index=1)])))
-    with pytest.raises(DatasetError, match="stage 0 is not listed"):
+    with pytest.raises(TrajectoryError, match="stage 0 is not listed"):
         read_trajectory(traj)
-    (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], file="x.ply")])))
-    with pytest.raises(FileNotFoundError, match="x.ply"):
+    (traj / "manifest.json").write_text(json.dumps(manifest))
+    (traj / "stage_000.ply").unlink()
+    with pytest.raises(TrajectoryError, match="manifest.json: stage 0 lists stage_000.ply, which is missing"):
         read_trajectory(traj)
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 HELP = "sample VNC-Flow trajectories into a truncated-SDF training dataset (one .npz per stage + index.json)"
 
@@ -25,18 +24,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vnc_warp.training.data import DatasetError, build_dataset, verify_dataset
+    """Build (and verify) the dataset; errors (an unwritable ``--out``, checked first, trajectory folders with
+    foreign or damaged stage files, samples with NaN) reach ``vnc_warp.cli.main`` as one line and exit code 2."""
+    from vnc_warp.training.data import build_dataset, verify_dataset
 
-    try:
-        summary = build_dataset(args.traj_dirs, args.out, num_surface=args.num_surface, num_uniform=args.num_uniform,
-                                num_near=args.num_near, noise=args.noise, truncation=args.truncation,
-                                device=args.device, seed=args.seed, overwrite=args.overwrite,
-                                progress=not args.quiet)
-        print(f"{summary['index']}: {summary['shapes']} shape(s); stages built {summary['built']}, "
-              f"rebuilt {summary['rebuilt']}, skipped {summary['skipped']}")
-        if args.verify:
-            print(f"verified {verify_dataset(args.out)} sample file(s)")
-    except (DatasetError, ValueError) as exc:
-        print(f"vnc-warp dataset: error: {exc}", file=sys.stderr)
-        return 2
+    summary = build_dataset(args.traj_dirs, args.out, num_surface=args.num_surface, num_uniform=args.num_uniform,
+                            num_near=args.num_near, noise=args.noise, truncation=args.truncation,
+                            device=args.device, seed=args.seed, overwrite=args.overwrite, progress=not args.quiet)
+    print(f"{summary['index']}: {summary['shapes']} shape(s); stages built {summary['built']}, "
+          f"rebuilt {summary['rebuilt']}, skipped {summary['skipped']}")
+    if args.verify:
+        print(f"verified {verify_dataset(args.out)} sample file(s)")
     return 0

@@ -129,6 +129,7 @@ def run(args) -> int:
     import vnc_warp as vw
     from vnc_warp import figures
     from vnc_warp._device import get_device
+    from vnc_warp._files import output_dir
     from vnc_warp.data import mesh_path
     from vnc_warp.flow import flow, sphericity
 
@@ -138,7 +139,7 @@ def run(args) -> int:
             raise ValueError(f"--{name.replace('_', '-')} must be >= {2 if name == 'scales' else 1}")
     t_start = time.perf_counter()
     out = Path(args.out)
-    (out / "meshes").mkdir(parents=True, exist_ok=True)
+    output_dir(out / "meshes", what="--out")
     device = get_device(args.device)
     src = str(args.mesh or mesh_path("spot"))
     mesh = vw.load_mesh(src)

@@ -37,7 +37,11 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from vnc_warp.flow import flow
 
-    traj = flow(args.mesh, out_dir=args.out, **flow_kwargs(args))
+    try:
+        traj = flow(args.mesh, out_dir=args.out, **flow_kwargs(args))
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"the finished stages are kept in {args.out}; run the same command again to "
+                                "resume") from None
     last = traj.records[-1]
     print(json.dumps({"out": args.out, "stages": len(traj.meshes) - 1, "t": [round(float(t), 4) for t in traj.t],
                       "final_sphericity": last["sphericity"], "seconds": sum(r["seconds"] for r in traj.records)}))

@@ -27,8 +27,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", default="ply", help="mesh file extension (ply, obj, stl, ...)")
 
 
+def _check_format(extension: str) -> None:
+    """Refuse a mesh format trimesh cannot write before anything is decoded."""
+    import trimesh
+
+    try:
+        trimesh.creation.box().export(file_type=extension)
+    except Exception:  # trimesh raises ValueError or KeyError for unknown types
+        raise ValueError(f"--format {extension!r}: not a mesh format trimesh can write (ply, obj, stl, off, glb, "
+                         "...)") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    from vnc_warp._files import output_dir
     from vnc_warp.training.inference import generate
+
+    _check_format(args.format)
+    output_dir(args.out, what="--out")
 
     report = generate(args.checkpoint, args.input, args.t, args.out, resolution=args.resolution, device=args.device,
                       num_surface=args.num_surface, seed=args.seed, file_format=args.format)
