@@ -174,6 +174,8 @@ class DataConfig:
         near_fraction: share of the queries drawn near the surface (the rest are uniform in the box).
         num_on_surface: points (xyz + normal) on the item's own surface per item, for L_surf and L_normal
             (0: none).
+        fresh_fraction: share of the far queries drawn afresh for every item and labelled from the stage's TSDF
+            grid (a dataset built with a grid; see :class:`~vnc_warp.training.data.TrajectoryDataset`).
         batch_size: items per step per process.
         num_workers: DataLoader worker processes.
         encoder_input: ``"stage0"``: the encoder sees the surface of the trajectory's stage 0 (t = 1,
@@ -185,6 +187,7 @@ class DataConfig:
     num_queries: int = 8192
     near_fraction: float = 0.5
     num_on_surface: int = 0
+    fresh_fraction: float = 0.0
     batch_size: int = 8
     num_workers: int = 4
     encoder_input: str = "stage0"
@@ -280,6 +283,8 @@ class TrainConfig:
                              f"got {lo.kl_time_ratio}")
         if not 0.0 <= d.near_fraction <= 1.0:
             raise ValueError(f"data.near_fraction must be in [0, 1], got {d.near_fraction}")
+        if not 0.0 <= d.fresh_fraction <= 1.0:
+            raise ValueError(f"data.fresh_fraction must be in [0, 1], got {d.fresh_fraction}")
         if (lo.surface_weight > 0 or lo.normal_weight > 0) and d.num_on_surface < 1:
             raise ValueError("loss.surface_weight / loss.normal_weight need data.num_on_surface >= 1 points on "
                              "each item's surface")

@@ -126,13 +126,16 @@ def _read_sample(path: Path, expected_sha: str | None = None) -> dict[str, np.nd
             or near.dtype != np.bool_):
         raise DatasetError(f"{path}: bad array shapes/dtypes: surface {s.shape} {s.dtype}, queries {q.shape} "
                            f"{q.dtype}, tsdf {d.shape} {d.dtype}, near {near.shape} {near.dtype}")
+    grid = arrays.get("grid")
+    if grid is not None and (grid.ndim != 3 or len(set(grid.shape)) != 1 or grid.dtype != np.float32):
+        raise DatasetError(f"{path}: bad TSDF grid {grid.shape} {grid.dtype}, expected (R, R, R) float32")
     _check_finite(arrays, path)
     return arrays
 
 
 def _check_finite(arrays: dict[str, np.ndarray], where) -> None:
     """Refuse NaN or infinite values: one would make every loss it enters NaN, silently, until the end of a run."""
-    for key in ("surface", "queries", "tsdf", "t"):
+    for key in ("surface", "queries", "tsdf", "t", *(("grid",) if "grid" in arrays else ())):
         bad = int(np.size(arrays[key]) - np.count_nonzero(np.isfinite(arrays[key])))
         if bad:
             raise DatasetError(f"{where}: {bad} non-finite value(s) (NaN or infinite) in {key!r}")
@@ -179,11 +182,12 @@ def _near_points(mesh: Mesh, count: int, noise: Sequence[float], rng: np.random.
 
 def _sample_stage(mesh: Mesh, rng: np.random.Generator, *, num_surface: int, num_uniform: int, num_near: int,
                   noise: Sequence[float], truncation: float, device: wp.context.Device, reference: Mesh | None = None,
-                  num_reference: int = 0) -> dict[str, np.ndarray]:
+                  num_reference: int = 0, grid_resolution: int = 0) -> dict[str, np.ndarray]:
     """Surface points, queries and truncated signed distances of one normalized stage mesh.
 
     Queries: ``num_uniform`` uniform in the box and ``num_reference`` near ``reference`` (the trajectory's
-    stage 0), both flagged far; then ``num_near`` near the stage's own surface, flagged near.
+    stage 0), both flagged far; then ``num_near`` near the stage's own surface, flagged near. With
+    ``grid_resolution`` R, also ``grid``: the TSDF at the nodes of ``linspace(-1, 1, R)^3``, indexed [x, y, z].
     """
     surf, normals = sample_surface(mesh, num_surface, rng)
     parts = [rng.uniform(-1.0, 1.0, size=(num_uniform, 3))]
@@ -198,12 +202,18 @@ def _sample_stage(mesh: Mesh, rng: np.random.Generator, *, num_surface: int, num
     tsdf = torch.clamp(sd, -truncation, truncation)
     near = np.zeros(queries.shape[0], dtype=bool)
     near[far:] = True
-    return {
+    arrays = {
         "surface": np.concatenate([surf, normals], axis=1).astype(np.float32),
         "queries": queries,
         "tsdf": tsdf.cpu().numpy(),
         "near": near,
     }
+    if grid_resolution:
+        axis = torch.linspace(-1.0, 1.0, grid_resolution, device=q.device)
+        nodes = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3).contiguous()
+        sd = signed_distance(mesh, nodes, device=device, max_dist=truncation, sign="winding")
+        arrays["grid"] = torch.clamp(sd, -truncation, truncation).reshape((grid_resolution,) * 3).cpu().numpy()
+    return arrays
 
 
 def build_dataset(
@@ -216,6 +226,7 @@ def build_dataset(
     noise: Sequence[float] = (0.005, 0.02),
     truncation: float = 0.1,
     num_reference: int = 0,
+    grid_resolution: int = 0,
     device=None,
     seed: int = 0,
     overwrite: bool = False,
@@ -230,7 +241,9 @@ def build_dataset(
     winding-number sign, negative inside) clamped to ``[-truncation, truncation]``; all lengths in normalized
     units (see :func:`normalization`). The C-VAEs decode every stage from stage 0's encoding, so the space the
     detailed input filled and a later stage left is where their remnants of it float; the ``num_reference``
-    queries supervise it. Only the own-surface queries are flagged ``near``.
+    queries supervise it. Only the own-surface queries are flagged ``near``. With ``grid_resolution`` R, the
+    TSDF on an R^3 grid over [-1, 1]^3 too, from which items label fresh uniform queries
+    (:class:`TrajectoryDataset`, ``fresh_fraction``), so that the far field is not a fixed set of points.
 
     A stage whose file already exists, loads, matches its checksum in ``index.json`` and was produced
     by the same settings, normalization and stage mesh is skipped; a corrupt or stale one is rebuilt
@@ -241,6 +254,7 @@ def build_dataset(
         out_dir: dataset directory (created).
         num_surface, num_uniform, num_near: samples per stage.
         num_reference: queries per stage near the trajectory's stage 0 (flagged far).
+        grid_resolution: nodes per axis of the stored TSDF grid (0: none).
         noise: near-surface noise standard deviations (normalized units), e.g. two levels.
         truncation: TSDF truncation distance (normalized units).
         device: Warp device for the signed distances (None: preferred device).
@@ -275,6 +289,10 @@ def build_dataset(
               "noise": noise, "truncation": float(truncation), "seed": int(seed)}
     if num_reference:
         config["num_reference"] = int(num_reference)
+    if grid_resolution:
+        if grid_resolution < 2:
+            raise ValueError(f"build_dataset: grid_resolution must be 0 or >= 2, got {grid_resolution}")
+        config["grid_resolution"] = int(grid_resolution)
     out = output_dir(out_dir, what="dataset folder")
     trajs = [read_trajectory(d) for d in traj_dirs]
     names = [tr.name for tr in trajs]
@@ -325,7 +343,8 @@ def build_dataset(
                 rng = np.random.default_rng([int(seed), zlib.crc32(tr.name.encode()), st.index])
                 arrays = _sample_stage(mesh, rng, num_surface=num_surface, num_uniform=num_uniform,
                                        num_near=num_near, noise=noise, truncation=truncation, device=dev,
-                                       reference=reference, num_reference=num_reference)
+                                       reference=reference, num_reference=num_reference,
+                                       grid_resolution=grid_resolution)
                 arrays["t"] = np.float32(st.t)
                 arrays["config"] = np.array(json.dumps(stage_config))
                 _check_finite(arrays, f"{st.path} (sampled for {rel})")
@@ -394,11 +413,16 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         cache: keep checked arrays in memory after the first read (see :meth:`preload`).
         repeats: passes over the stages per epoch (>= 1).
         num_on_surface: points of ``on_surface`` per item (0: no such key).
+        fresh_fraction: share of the far (not near-surface) queries drawn afresh, uniform in [-1, 1]^3, for every
+            item and labelled by trilinear interpolation of the stage's TSDF grid (a dataset built with
+            ``grid_resolution``); only points at least half the truncation from the surface are kept, where the
+            interpolation is exact up to the grid's rounding. A fixed pool leaves gaps a decoder can fill with
+            floating surfaces; fresh points close them over the run.
     """
 
     def __init__(self, root: str | os.PathLike, *, num_surface: int = 2048, num_queries: int = 4096,
                  split: str = "train", holdout: Sequence[str] = (), seed: int = 0, near_fraction: float = 0.5,
-                 cache: bool = False, repeats: int = 1, num_on_surface: int = 0):
+                 cache: bool = False, repeats: int = 1, num_on_surface: int = 0, fresh_fraction: float = 0.0):
         self.root = Path(root)
         index = _read_index(self.root)
         if split not in ("train", "test", "all"):
@@ -422,6 +446,12 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             raise ValueError(f"TrajectoryDataset: num_on_surface must be >= 0, got {num_on_surface}")
         self.num_surface, self.num_queries, self.num_on_surface = int(num_surface), int(num_queries), int(num_on_surface)
         self.num_near = int(round(near_fraction * num_queries))
+        if not 0.0 <= fresh_fraction <= 1.0:
+            raise ValueError(f"TrajectoryDataset: fresh_fraction must be in [0, 1], got {fresh_fraction}")
+        if fresh_fraction and "grid_resolution" not in index.get("config", {}):
+            raise ValueError(f"TrajectoryDataset: fresh_fraction needs a dataset built with a TSDF grid; "
+                             f"{self.root / 'index.json'} has none (build it with grid_resolution > 0)")
+        self.fresh_fraction = float(fresh_fraction)
         self.seed, self.epoch = int(seed), 0
         self._cache: dict[int, dict[str, np.ndarray]] | None = {} if cache else None
 
@@ -478,13 +508,19 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         near_pool, far_pool = np.flatnonzero(a["near"]), np.flatnonzero(~a["near"])
         n_near = 0 if near_pool.size == 0 else self.num_queries if far_pool.size == 0 else self.num_near
         n_far = self.num_queries - n_near
-        q_idx = np.concatenate([rng.choice(far_pool, n_far, replace=far_pool.size < n_far),
+        fresh_q, fresh_d = self._fresh(a, int(round(self.fresh_fraction * n_far)), float(self.shapes[sid]["truncation"]),
+                                       rng)
+        n_pool = n_far - len(fresh_q)
+        q_idx = np.concatenate([rng.choice(far_pool, n_pool, replace=far_pool.size < n_pool),
                                 rng.choice(near_pool, n_near, replace=near_pool.size < n_near)])
+        near = a["near"][q_idx]
+        if len(fresh_q):
+            near = np.concatenate([np.zeros(len(fresh_q), dtype=bool), near])
         item = {
             "surface": torch.from_numpy(np.ascontiguousarray(a["surface"][s_idx])),
-            "queries": torch.from_numpy(np.ascontiguousarray(a["queries"][q_idx])),
-            "tsdf": torch.from_numpy(np.ascontiguousarray(a["tsdf"][q_idx])),
-            "near": torch.from_numpy(np.ascontiguousarray(a["near"][q_idx])),
+            "queries": torch.from_numpy(np.concatenate([fresh_q, a["queries"][q_idx]])),
+            "tsdf": torch.from_numpy(np.concatenate([fresh_d, a["tsdf"][q_idx]])),
+            "near": torch.from_numpy(near),
             "t": torch.tensor(float(st["t"]), dtype=torch.float32),
             "shape_id": torch.tensor(sid, dtype=torch.int64),
             "stage": torch.tensor(int(st["index"]), dtype=torch.int64),
@@ -493,3 +529,18 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             o_idx = rng.choice(ns, self.num_on_surface, replace=ns < self.num_on_surface)
             item["on_surface"] = torch.from_numpy(np.ascontiguousarray(a["surface"][o_idx]))
         return item
+
+    @staticmethod
+    def _fresh(a: dict[str, np.ndarray], count: int, truncation: float,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``count`` uniform points in [-1, 1]^3 at least ``truncation / 2`` from the surface, with their
+        TSDF interpolated from ``a["grid"]``: (n, 3) and (n,) float32."""
+        if count == 0:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+        from scipy.ndimage import map_coordinates
+
+        grid = a["grid"]
+        pts = rng.uniform(-1.0, 1.0, size=(2 * count, 3))
+        d = map_coordinates(grid, ((pts + 1.0) * 0.5 * (grid.shape[0] - 1)).T, order=1)
+        keep = np.flatnonzero(np.abs(d) >= 0.5 * truncation)[:count]
+        return pts[keep].astype(np.float32), d[keep].astype(np.float32)

@@ -96,6 +96,8 @@ class ExperimentConfig:
             every item draws a fresh subset from).
         num_reference: queries per stage near the trajectory's stage 0, labelled with the stage's SDF (where
             remnants of the detailed input float; see :func:`~vnc_warp.training.data.build_dataset`).
+        grid_resolution: nodes per axis of each stage's stored TSDF grid, from which items label fresh far
+            queries (``data.fresh_fraction``); 0: none.
         noise: standard deviations of the near-surface queries (normalized units), split evenly.
         truncation: TSDF truncation (normalized units).
         backbone: the VecSet backbone shared by all three models (``kind`` and ``pretrained`` are set
@@ -140,6 +142,7 @@ class ExperimentConfig:
     flow_budget_s: float | None = None
     num_samples: tuple[int, int, int] = (2048, 2048, 2048)
     num_reference: int = 0
+    grid_resolution: int = 0
     noise: tuple[float, ...] = (0.005, 0.02)
     truncation: float = 0.1
     backbone: ModelConfig = field(default_factory=ModelConfig)
@@ -246,7 +249,7 @@ def run_config(config: ExperimentConfig, kind: str, *, pretrained: str | None = 
 def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: int, queries: int, workers: int,
                    kl: float, linear_kl: bool, eik_queries: int, log_every: int, ckpt_every: int,
                    kl_time_ratio: float = 1.0, near_fraction: float = 0.5, on_surface: int = 0,
-                   surface_weight: float = 0.0, normal_weight: float = 0.0) -> TrainConfig:
+                   surface_weight: float = 0.0, normal_weight: float = 0.0, fresh_fraction: float = 0.0) -> TrainConfig:
     loss = LossConfig(kl_weight=kl, kl_schedule="linear" if linear_kl else "constant", kl_weight_start=0.0,
                       kl_warmup_start=steps // 10 if linear_kl else 0, kl_warmup_steps=steps // 2 if linear_kl else 0,
                       kl_time_ratio=kl_time_ratio, eikonal_weight=0.01, eikonal_queries=eik_queries,
@@ -254,14 +257,16 @@ def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: i
     return TrainConfig(loss=loss, optim=OptimConfig(lr=lr, weight_decay=0.01, warmup_steps=warmup, total_steps=steps,
                                                     min_lr_ratio=0.1),
                        data=DataConfig(num_surface=surface, num_queries=queries, batch_size=batch, num_workers=workers,
-                                       near_fraction=near_fraction, num_on_surface=on_surface),
+                                       near_fraction=near_fraction, num_on_surface=on_surface,
+                                       fresh_fraction=fresh_fraction),
                        bf16=True, log_every=log_every, ckpt_every=ckpt_every)
 
 
-# The recipe of every model (issue 24): most queries near the surface, the surface and normal terms, the narrow
-# posterior at init (ModelConfig.logvar_init), a decoder that starts from empty space (ModelConfig.sdf_init = the
-# truncation); C-VAE-I's KL prior contracts toward t = 0 (the radial structure).
-_RECIPE = dict(near_fraction=0.7, surface_weight=1.0, normal_weight=0.05)
+# The recipe of every model (issue 24): half the queries near the surface, half of the others drawn afresh for
+# every item (labelled from the stage's TSDF grid), the surface and normal terms, the narrow posterior at init
+# (ModelConfig.logvar_init), a decoder that starts from empty space (ModelConfig.sdf_init = the truncation);
+# C-VAE-I's KL prior contracts toward t = 0 (the radial structure).
+_RECIPE = dict(near_fraction=0.5, fresh_fraction=0.5, surface_weight=1.0, normal_weight=0.05)
 
 
 def _cpu_smoke() -> ExperimentConfig:
@@ -274,7 +279,7 @@ def _cpu_smoke() -> ExperimentConfig:
         train_meshes=("spot_lowres.obj", "human_man.obj"), holdout_meshes=("fandisk.obj",),
         distill_mesh="human_man.obj",
         real_faces=1280, real_resolution=40, stages=3, max_iters=200, flow_workers=1, num_samples=(2048, 2048, 2048),
-        num_reference=1024,
+        num_reference=1024, grid_resolution=32,
         backbone=ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2,
                              num_freqs=6, chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1,
                              sdf_init=0.1),
@@ -309,7 +314,7 @@ def _gpu() -> ExperimentConfig:
         holdout_humanoids=5, humanoid_voxel=0.01, train_meshes=_REAL_TRAIN, holdout_meshes=_BODIES,
         distill_mesh="human_man.obj", distill_stages=32,
         real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=12, flow_budget_s=240.0,
-        num_samples=(32768, 16384, 65536), num_reference=16384, noise=(0.003, 0.01, 0.03),
+        num_samples=(32768, 16384, 65536), num_reference=16384, grid_resolution=80, noise=(0.003, 0.01, 0.03),
         backbone=ModelConfig(width=384, heads=6, num_latents=512, latent_dim=32, encoder_depth=2, decoder_depth=6,
                              num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
                              sdf_init=0.1),
@@ -331,7 +336,7 @@ def _cpu_rehearsal() -> ExperimentConfig:
         cfg, name="cpu-rehearsal", num_shapes=2, holdout_shapes=1, subdivisions=3, num_humanoids=3,
         holdout_humanoids=1, humanoid_voxel=0.02, train_meshes=("spot_lowres.obj", "goathead.obj"),
         distill_stages=4, real_faces=1000, real_resolution=40, stages=2, max_iters=60, flow_workers=2,
-        flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024,
+        flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024, grid_resolution=32,
         backbone=ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2,
                              num_freqs=6, chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1,
                              sdf_init=0.1),
@@ -884,6 +889,7 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
         else:
             results["dataset"] = build_dataset([s.traj for s in in_data], work / "data", num_surface=ns,
                                                num_uniform=nu, num_near=nn_, num_reference=config.num_reference,
+                                               grid_resolution=config.grid_resolution,
                                                noise=config.noise,
                                                truncation=config.truncation, device=warp_device, seed=config.seed,
                                                progress=progress)
@@ -976,7 +982,8 @@ def _dataset(kind: str, cfg: TrainConfig, config: ExperimentConfig, work: Path, 
     from .data import TrajectoryDataset
 
     kw = dict(num_surface=cfg.data.num_surface, num_queries=cfg.data.num_queries, near_fraction=cfg.data.near_fraction,
-              num_on_surface=cfg.data.num_on_surface, seed=cfg.seed, cache=True)
+              num_on_surface=cfg.data.num_on_surface, fresh_fraction=cfg.data.fresh_fraction, seed=cfg.seed,
+              cache=True)
     if kind == "cvae2":
         data = TrajectoryDataset(work / "data", split="test", holdout=(distill.name,), repeats=config.distill_repeats,
                                  **kw)

@@ -165,7 +165,8 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
 
         dataset = TrajectoryDataset(root, num_surface=config.data.num_surface, num_queries=config.data.num_queries,
                                     near_fraction=config.data.near_fraction,
-                                    num_on_surface=config.data.num_on_surface, split=split, seed=config.seed)
+                                    num_on_surface=config.data.num_on_surface,
+                                    fresh_fraction=config.data.fresh_fraction, split=split, seed=config.seed)
     return Stage0Input(dataset) if config.data.encoder_input == "stage0" else dataset
 
 
