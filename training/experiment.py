@@ -269,6 +269,21 @@ def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: i
 _RECIPE = dict(near_fraction=0.5, fresh_fraction=0.5, surface_weight=1.0, normal_weight=0.05)
 
 
+def _sections(*, lr: float, steps: int, warmup: int, common: dict, distill: dict | None = None) -> dict:
+    """The three models' training sections: beta_kl 1e-3 warmed up for C-VAE-I (with the temporal prior, ratio
+    100) and the VAE alike, 1e-4 for C-VAE-II; ``distill`` overrides ``common`` for C-VAE-II."""
+    kw = dict(lr=lr, steps=steps, warmup=warmup)
+    return {"cvae1": _train_section(**kw, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **common),
+            "vae": _train_section(**kw, kl=1e-3, linear_kl=True, **common),
+            "cvae2": _train_section(**kw, kl=1e-4, linear_kl=False, **(distill or common))}
+
+
+def _tiny_backbone() -> ModelConfig:
+    """~0.3M-parameter models for CPU runs."""
+    return ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2, num_freqs=6,
+                       chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1, sdf_init=0.1)
+
+
 def _cpu_smoke() -> ExperimentConfig:
     """About 2 minutes on a 2-core CPU: 6 shapes of 642 vertices (one held out), Spot and the SMPL body
     remeshed to 1280 faces for training, fandisk held out, 3 stages, ~0.3M-parameter models, fixed steps."""
@@ -279,13 +294,8 @@ def _cpu_smoke() -> ExperimentConfig:
         train_meshes=("spot_lowres.obj", "human_man.obj"), holdout_meshes=("fandisk.obj",),
         distill_mesh="human_man.obj",
         real_faces=1280, real_resolution=40, stages=3, max_iters=200, flow_workers=1, num_samples=(2048, 2048, 2048),
-        num_reference=1024, grid_resolution=32,
-        backbone=ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2,
-                             num_freqs=6, chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1,
-                             sdf_init=0.1),
-        cvae1=_train_section(lr=1e-3, steps=500, warmup=20, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **small),
-        vae=_train_section(lr=1e-3, steps=500, warmup=20, kl=1e-3, linear_kl=True, **small),
-        cvae2=_train_section(lr=1e-3, steps=300, warmup=20, kl=1e-4, linear_kl=False, **small),
+        num_reference=1024, grid_resolution=32, backbone=_tiny_backbone(),
+        **_sections(lr=1e-3, steps=500, warmup=20, common=small),
         repeats=1, distill_repeats=4, torch_threads=1, resolution=48, n_points=5000, n_emd=500,
         eval_workers=1, figures=True, render_size=128)
 
@@ -318,9 +328,7 @@ def _gpu() -> ExperimentConfig:
         backbone=ModelConfig(width=384, heads=6, num_latents=512, latent_dim=32, encoder_depth=2, decoder_depth=6,
                              num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
                              sdf_init=0.1),
-        cvae1=_train_section(lr=4e-4, steps=20000, warmup=100, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **big),
-        vae=_train_section(lr=4e-4, steps=20000, warmup=100, kl=1e-3, linear_kl=True, **big),
-        cvae2=_train_section(lr=4e-4, steps=20000, warmup=100, kl=1e-4, linear_kl=False, **distill),
+        **_sections(lr=4e-4, steps=20000, warmup=100, common=big, distill=distill),
         repeats=8, distill_repeats=64, train_budget_s=180.0, distill_budget_s=200.0, calibration_steps=30,
         min_steps=100, torch_threads=None, resolution=256, n_points=100_000, n_emd=4096, eval_workers=14,
         figures=True, render_size=192)
@@ -337,12 +345,7 @@ def _cpu_rehearsal() -> ExperimentConfig:
         holdout_humanoids=1, humanoid_voxel=0.02, train_meshes=("spot_lowres.obj", "goathead.obj"),
         distill_stages=4, real_faces=1000, real_resolution=40, stages=2, max_iters=60, flow_workers=2,
         flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024, grid_resolution=32,
-        backbone=ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2,
-                             num_freqs=6, chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1,
-                             sdf_init=0.1),
-        cvae1=_train_section(lr=1e-3, steps=400, warmup=20, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **small),
-        vae=_train_section(lr=1e-3, steps=400, warmup=20, kl=1e-3, linear_kl=True, **small),
-        cvae2=_train_section(lr=1e-3, steps=400, warmup=20, kl=1e-4, linear_kl=False, **small),
+        backbone=_tiny_backbone(), **_sections(lr=1e-3, steps=400, warmup=20, common=small),
         repeats=2, distill_repeats=4, train_budget_s=40.0, distill_budget_s=30.0, calibration_steps=10,
         min_steps=20, torch_threads=1, resolution=48, n_points=4000, n_emd=256, eval_workers=2, render_size=96)
 
@@ -672,13 +675,17 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
         log(f"  {kind}: training to step {cfg.optim.total_steps} (from {done}), budget "
             f"{'none' if budget_s is None else f'{budget_s:.0f} s'}")
         t0 = time.perf_counter()
-        with warnings.catch_warnings():
-            # the calibration ran under the nominal schedule; the planned one taking over is the design
-            warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
-            train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
-        seconds += time.perf_counter() - t0
-    plan["seconds"] = plan.get("seconds", 0.0) + seconds
-    plan_path.write_text(json.dumps(plan, indent=1))
+        try:
+            with warnings.catch_warnings():
+                # the calibration ran under the nominal schedule; the planned one taking over is the design
+                warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
+                train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
+        finally:  # an interrupted run's seconds count too
+            plan["seconds"] = plan.get("seconds", 0.0) + seconds + time.perf_counter() - t0
+            plan_path.write_text(json.dumps(plan, indent=1))
+    else:
+        plan["seconds"] = plan.get("seconds", 0.0) + seconds
+        plan_path.write_text(json.dumps(plan, indent=1))
     rows = _rows(run)
     steady = [r["samples_per_s"] for r in rows[1:]] or [r["samples_per_s"] for r in rows]
     tail = rows[-max(1, len(rows) // 10):]

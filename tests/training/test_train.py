@@ -155,6 +155,28 @@ def test_extract_mesh_sphere_and_units():
         extract_mesh(sdf + 10.0)
 
 
+def test_extract_mesh_from_a_tensor_in_a_fresh_process():
+    """A torch SDF goes through Warp's marching cubes even where nothing has initialised Warp yet (a generation step
+    of the experiment runs in a process of its own): the same sphere, volume and outward winding as scikit-image's."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, torch\n"
+            "from vnc_warp.training.inference import extract_mesh\n"
+            "a = torch.linspace(-1, 1, 40)\n"
+            "x, y, z = torch.meshgrid(a, a, a, indexing='ij')\n"
+            "sdf = (x**2 + y**2 + z**2).sqrt() - 0.5\n"
+            "w, s = extract_mesh(sdf), extract_mesh(sdf.numpy())\n"
+            "print(w.volume(), s.volume(), w.is_watertight)\n")
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    warp_volume, skimage_volume, watertight = out.stdout.split()[-3:]
+    assert float(warp_volume) == pytest.approx(float(skimage_volume), rel=1e-3)
+    assert float(warp_volume) == pytest.approx(4 / 3 * math.pi * 0.125, rel=0.02) and watertight == "True"
+
+
 def test_resume_equals_uninterrupted(tmp_path):
     """6 steps in one go equal 3 steps, stop, resume to 6 (mid-epoch stop): identical losses, lr and grad norms."""
     ds = EllipsoidTrajectories(num_shapes=2, num_stages=4, seed=2)  # 8 items, 2 batches per epoch
