@@ -747,7 +747,7 @@ def latent_space(
     Raises:
         ValueError: fewer than 3 samples or shapes that do not match.
     """
-    from vnc_warp.training.latent import pca, pearson
+    from .stats import pca, pearson
 
     z = np.asarray(_host(latents), np.float64)
     tt = np.asarray(_host(t), np.float64).reshape(-1)
