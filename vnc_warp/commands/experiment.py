@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import tempfile
 from pathlib import Path
 
 HELP = ("run the C-VAE experiment end to end from a preset (cpu-smoke, cpu-rehearsal, gpu) or JSON, whole or one "
@@ -20,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="results folder: results.json, results.md, PNGs")
     parser.add_argument("--work", default=None, metavar="DIR",
                         help="folder of trajectories, datasets, checkpoints, predictions; reusing it resumes "
-                             "(default: <tmp>/vnc-warp-experiment-<preset>)")
+                             "(default: OUT/work, so that re-running the same command resumes)")
     parser.add_argument("--step", type=int, choices=[1, 2, 3, 4], default=None,
                         help="run up to the end of step 1 (data: shapes, flows, dataset), 2 (train C-VAE-I and the "
                              "VAE), 3 (C-VAE-II and generation) or 4 (evaluation, anatomy, results); earlier steps "
@@ -53,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(config.to_dict(), indent=1))
         return 0
-    work = args.work or str(Path(tempfile.gettempdir()) / f"vnc-warp-experiment-{config.name}")
+    work = args.work or str(Path(args.out) / "work")
     results = run_experiment(config, out_dir=args.out, work_dir=work, meshes_dir=args.meshes, device=args.device,
                              progress=not args.no_progress, step=args.step,
                              log=logging.getLogger("vnc_warp").info)
