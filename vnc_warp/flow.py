@@ -294,6 +294,12 @@ class _Stepper:
         return Mesh(self.x.numpy(), self.mesh.faces, self.mesh.topology, self.mesh.name)
 
 
+def _as_saved(mesh: Mesh) -> Mesh:
+    """The state as a resumed run reads it back: float32 vertices with no float64 history (the stage PLY holds
+    float32), so that a run resumed from its files continues bit-identically to one never interrupted."""
+    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), mesh.faces, mesh.topology, mesh.name)
+
+
 def _check_state(mesh: Mesh) -> str | None:
     from .remesh import surface_problems
 
@@ -352,7 +358,7 @@ def flow(
     traj = resume(out_dir, info) if out_dir is not None else None
     t_start = time.perf_counter()
     if traj is None:
-        m0 = sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src
+        m0 = _as_saved(sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src)
         taus = default_scales(m0, p.num_scales)
         S_init = total_complexity(m0, taus, kappa=p.kappa, device=device)
         if not S_init > 0:
@@ -379,7 +385,7 @@ def flow(
             cur = sdf_remesh(prev, faces=p.faces or traj.meshes[0].num_faces, resolution=p.resolution,
                              device=device) if (p.remesh and i > 1) else prev
             rec = _run_stage(cur, i, taus, S_init, phi_stage, p, device, bar)
-            state = rec.pop("_mesh")
+            state = _as_saved(rec.pop("_mesh"))
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             traj.meshes.append(state)
             traj.records.append(rec)
