@@ -452,6 +452,14 @@ def unpack_soft_state(
 
 
 @wp.kernel(enable_backward=False)
+def unpack_grads(grads: wp.array2d(dtype=float), H_grad: wp.array(dtype=float), n_grad: wp.array(dtype=wp.vec3)):
+    """The upstream gradients ``(dL/dH, dL/dn)`` of a row of 4."""
+    k = wp.tid()
+    H_grad[k] = grads[k, 0]
+    n_grad[k] = wp.vec3(grads[k, 1], grads[k, 2], grads[k, 3])
+
+
+@wp.kernel(enable_backward=False)
 def gaussian_factors(radius: wp.array(dtype=float), kappa: float, f: wp.array(dtype=float)):
     """``f = gaussian_factor(radius, kappa)`` per query point (zero for ``kappa = 0``: unweighted)."""
     i = wp.tid()
@@ -494,70 +502,114 @@ def pack_vertex_adjoints(
     gs[i] = wp.vec4(gS[0], gS[1], gS[2], 0.0)
 
 
-@wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
-def soft_edge_adjoint(
-    mid: wp.array(dtype=wp.vec3),
-    angle: wp.array(dtype=float),
-    enormal: wp.array(dtype=wp.vec3),
-    kappa: float,
-    count: int,
-    size: int,
-    order: wp.array(dtype=int),
-    box_lo: wp.array(dtype=wp.vec3i),
-    box_hi: wp.array(dtype=wp.vec3i),
-    first: wp.array(dtype=int),
-    dims: wp.vec3i,
-    origin: wp.vec3,
-    inv_h: float,
-    pad: float,
-    pos: wp.array(dtype=wp.vec4),
-    coef: wp.array(dtype=wp.vec4),
-    gs: wp.array(dtype=wp.vec4),
-    part_a: wp.array2d(dtype=float),
-    part_b: wp.array2d(dtype=float),
-    part_c: wp.array2d(dtype=wp.vec3),
-    part_m: wp.array2d(dtype=wp.vec3),
-):
-    """The adjoint of VNC-soft (Eq. (3)) with respect to the edge quantities, gathered per edge over the vertices
-    whose ball reaches it (the sources, within their own cut-off ``f_k d^2 >= gaussian_cutoff``; the edges' boxes take the largest
-    radius as their pad): ``A = sum gN w``, ``B = sum gD w``, ``C = sum gS w`` and
-    ``M = sum f w (gN alpha + gD + gS . n_j) (x_k - m_j)``; :func:`reduce_edge_grads` turns them into gradients."""
-    s, t = wp.tid()
-    if t >= count:
-        return
-    j = order[t]
-    grp = t // size
-    m = mid[j]
-    a = angle[j]
-    u = enormal[j]
-    emin = gaussian_cutoff(kappa)
-    lo, hi = thread_box(grp, m, pad, box_lo, box_hi, origin, inv_h, dims)
-    nrows = box_rows(lo, hi)
-    ns = part_a.shape[0]
-    A = float(0.0)
-    B = float(0.0)
-    C = wp.vec3(0.0)
-    M = wp.vec3(0.0)
-    walk = row_walk(nrows, s, ns)
-    for row in range(walk[0], nrows, walk[1]):
-        span = row_share(row_span(row, lo, hi, dims, first), s, ns, walk[1])
-        for i in range(span[0], span[1]):
-            vp = load4(pos, i)
-            d = wp.vec3(vp[0], vp[1], vp[2]) - m
-            d2 = wp.dot(d, d)
-            if d2 * vp[3] >= emin:
-                w = gaussian_weight(d2, vp[3])
-                vc = load4(coef, i)
-                g4 = load4(gs, i)
-                gsv = wp.vec3(g4[0], g4[1], g4[2])
-                A += vc[0] * w
-                B += vc[1] * w
-                C += w * gsv
-                M += (vp[3] * w * (vc[0] * a + vc[1] + wp.dot(gsv, u))) * d
-    part_a[s, t] = A
-    part_b[s, t] = B
-    part_c[s, t] = C
-    part_m[s, t] = M
+@functools.cache
+def soft_edge_adjoint_kernel(cull: bool, moving: bool = False):
+    """The adjoint of VNC-soft (Eq. (3)) with respect to the edge quantities (compiled once per variant), gathered per
+    edge over the vertices whose ball reaches it: the same walk as :func:`soft_cells_kernel` with one query (an
+    edge) per thread, ``cull`` and ``moving`` as there."""
+
+    @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
+    def soft_edge_adjoint(
+        mid: wp.array(dtype=wp.vec3),
+        angle: wp.array(dtype=float),
+        enormal: wp.array(dtype=wp.vec3),
+        reach: wp.array(dtype=float),
+        kappa: float,
+        count: int,
+        size: int,
+        order: wp.array(dtype=int),
+        box_lo: wp.array(dtype=wp.vec3i),
+        box_hi: wp.array(dtype=wp.vec3i),
+        first: wp.array(dtype=int),
+        dims: wp.vec3i,
+        origin: wp.vec3,
+        inv_h: float,
+        pad: float,
+        pos: wp.array(dtype=wp.vec4),
+        coef: wp.array(dtype=wp.vec4),
+        gs: wp.array(dtype=wp.vec4),
+        part_a: wp.array2d(dtype=float),
+        part_b: wp.array2d(dtype=float),
+        part_c: wp.array2d(dtype=wp.vec3),
+        part_m: wp.array2d(dtype=wp.vec3),
+    ):
+        """Split ``s`` of the sums over the vertices (the sources, each within its own cut-off ``f_k d^2 >=
+        gaussian_cutoff``; an edge's ball is the largest radius ``reach[j]`` of them, plus ``pad``) of edge
+        ``j = order[t]``: ``A = sum gN w``,
+        ``B = sum gD w``, ``C = sum gS w`` and ``M = sum f w (gN alpha + gD + gS . n_j) (x_k - m_j)``;
+        :func:`reduce_edge_grads` turns them into gradients."""
+        s, t = wp.tid()
+        g = t // size
+        # the threads past the last edge of a group that walks a shared box walk it too (walk_span)
+        shared = box_lo[g][0] >= 0
+        if t >= count and not shared:
+            return
+        m = wp.vec3(FAR)
+        a = float(0.0)
+        u = wp.vec3(0.0)
+        tlo = wp.vec3(1.0e30)
+        thi = wp.vec3(-1.0e30)
+        if t < count:
+            j = order[t]
+            m = mid[j]
+            a = angle[j]
+            u = enormal[j]
+            e = wp.vec3(reach[j] + pad)
+            tlo = m - e
+            thi = m + e
+        emin = gaussian_cutoff(kappa)
+        lo, hi = thread_span_box(g, tlo, thi, box_lo, box_hi, origin, inv_h, dims)
+        ball = thread_ball(tlo, thi, origin, inv_h)
+        if wp.static(moving):
+            ball = clamp_ball(ball, dims)
+        ns = part_a.shape[0]
+        A = float(0.0)
+        B = float(0.0)
+        C = wp.vec3(0.0)
+        M = wp.vec3(0.0)
+        nrows = box_rows(lo, hi)
+        steps = row_walk(nrows, s, ns)
+        held = wp.vec2i(0, 0)
+        walked = int(0)
+        for row in range(steps[0], nrows, steps[1]):
+            whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
+                                    wp.static(cull), ball)
+            walked += 1
+            span = row_share(whole, s, ns, steps[1])
+            for i in range(span[0], span[1]):
+                vp = load4(pos, i)
+                d = wp.vec3(vp[0], vp[1], vp[2]) - m
+                d2 = wp.dot(d, d)
+                if d2 * vp[3] >= emin:
+                    w = gaussian_weight(d2, vp[3])
+                    vc = load4(coef, i)
+                    g4 = load4(gs, i)
+                    gsv = wp.vec3(g4[0], g4[1], g4[2])
+                    A += vc[0] * w
+                    B += vc[1] * w
+                    C += w * gsv
+                    M += (vp[3] * w * (vc[0] * a + vc[1] + wp.dot(gsv, u))) * d
+        if t < count:
+            part_a[s, t] = A
+            part_b[s, t] = B
+            part_c[s, t] = C
+            part_m[s, t] = M
+
+    return soft_edge_adjoint
+
+
+@wp.kernel(enable_backward=False)
+def largest(values: wp.array(dtype=float), out: wp.array(dtype=float)):
+    """``out[0] = max(out[0], values)`` (``out`` zeroed first; the values are positive)."""
+    i = wp.tid()
+    wp.atomic_max(out, 0, values[i])
+
+
+@wp.kernel(enable_backward=False)
+def broadcast(src: wp.array(dtype=float), dst: wp.array(dtype=float)):
+    """``dst[i] = src[0]``."""
+    i = wp.tid()
+    dst[i] = src[0]
 
 
 @wp.kernel(enable_backward=False)
@@ -575,7 +627,7 @@ def reduce_edge_grads(
     enormal_grad: wp.array(dtype=wp.vec3),
     mid_grad: wp.array(dtype=wp.vec3),
 ):
-    """Edge gradients of VNC-soft from the gathered sums of :func:`soft_edge_adjoint` (``c = w L``):
+    """Edge gradients of VNC-soft from the gathered sums of :func:`soft_edge_adjoint_kernel` (``c = w L``):
     ``dalpha += L A``, ``dn += L C``, ``dL += alpha A + B + n . C`` and ``dm += -2 ln2 L M`` (the weight's gradient in
     ``m_j`` is minus its gradient in ``x_k``, :func:`kernels.vnc_terms.gaussian_gradient`)."""
     t = wp.tid()

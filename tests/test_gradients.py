@@ -241,3 +241,30 @@ def test_torch_op_replays_and_interleaves(device):
     la.backward()
     torch.testing.assert_close(va.grad, plain[1], rtol=0, atol=0)
     torch.testing.assert_close(vb.grad, plain[3], rtol=0, atol=0)
+
+
+def test_torch_gradient_as_positions_and_scales_change(device):
+    """The torch op's plan outlives its positions and per-vertex scales (a flow's iterations): calls at moved
+    positions, and with a few scales grown threefold (the largest radius past the plan's, the mean within its
+    tolerance), each give the float64 dense reference's gradient to 1e-5 of its largest entry."""
+    mesh = _mesh(6)
+    V = mesh.num_vertices
+    wH, wn = _objective_weights(V, 8)
+    rng = np.random.default_rng(9)
+    tau = 0.5 * rng.uniform(0.8, 1.2, V)
+    replay = Tuning(replay=("cpu", "cuda"))
+    eng = vw.engine(mesh, device, tuning=replay)
+    for k in range(5):
+        t = tau.copy()
+        if k >= 3:
+            t[::40] *= 3.0
+        x0 = mesh.vertices.astype(np.float64) * (1.0 + 0.02 * k)
+        v = torch.tensor(x0, dtype=torch.float32, device=device, requires_grad=True)
+        H, n = vnc_soft(v, mesh, torch.as_tensor(t, dtype=torch.float32, device=device), tuning=replay)
+        ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
+        v64 = torch.tensor(v.detach().cpu().numpy().astype(np.float64), requires_grad=True)
+        H64, n64 = dense_soft(v64, mesh.faces, t)
+        ((H64 * wH).sum() + (n64 * wn).sum()).backward()
+        g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
+        assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+    assert len(eng._plans) == 1

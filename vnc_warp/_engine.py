@@ -117,13 +117,15 @@ class _Moving:
         self.event = wp.Event(device) if device.is_cuda else None
         self.pending = False
         self.saved: dict = {}  # the torch op's inputs of a backward pass, as the graph reads them
+        self.prep = None  # what the last forward call prepared (fields, traversal, records, sums) ...
+        self.token = None  # ... and the engine's token of that call
 
     def load(self, x: wp.array, tau) -> None:
         """Copy the call's positions (and array of scales) into the arrays the plan's launches read."""
         wp.copy(self.x, x)
         if self.tau is not None:
             if isinstance(tau, wp.array):
-                wp.copy(self.tau, tau)
+                wp.copy(self.tau, per_point(tau, self.tau.shape[0], self.tau.device, "tau"))
             else:
                 self.tau.assign(host_array(tau, self.tau.shape[0], "tau"))
 
@@ -199,6 +201,9 @@ class Engine:
         self._replays: dict = {}
         self._plans: OrderedDict = OrderedDict()
         self._unused = None
+        # a new token for every VNC-soft call: a backward pass may reuse what its forward call prepared while the
+        # engine's token is still that call's (no other call has written the scratch since)
+        self._soft_token = None
 
     def __repr__(self) -> str:
         return f"Engine({self.name!r}, V={self.num_vertices}, device={self.device.alias!r})"
@@ -377,12 +382,13 @@ class Engine:
         kappa = check_kappa(kappa, soft=True)
         _plan.check_strategy(strategy)
         x = self.positions(positions)
+        self._soft_token = None
         if tape is not None and not x.requires_grad:
             raise ValueError("vnc_soft(tape=...) needs positions given as a wp.array with requires_grad=True")
         t = host_scalar(tau, "tau")
         if tape is not None or strategy == "bvh":
-            outputs, f, backward = self._soft(x, tau, kappa, strategy, None if tape is not None else self.pool("soft"),
-                                              True)
+            outputs, f, backward, _ = self._soft(x, tau, kappa, strategy,
+                                                 None if tape is not None else self.pool("soft"), True)
             if tape is not None:
                 tape.record_func(backward=backward, arrays=[outputs[3], outputs[4], f.mid, f.length, f.angle,
                                                             f.normal])
@@ -409,23 +415,29 @@ class Engine:
         plan = self._moving(("soft", strategy, kappa, "array" if t is None else t), x, tau, self._soft_bounds(strategy))
 
         def run(pool, fresh):
-            outputs, _, _ = self._soft(plan.x, plan.tau if t is None else t, kappa, plan.strategy, pool, fresh,
-                                       bounds=plan.bounds)
+            outputs, f, _, prep = self._soft(plan.x, plan.tau if t is None else t, kappa, plan.strategy, pool, fresh,
+                                             bounds=plan.bounds)
             plan.measure(plan.tau)
             if not packed:
                 return outputs[3:]
+            # only the torch op's (packed) calls leave what a backward pass reuses: a replayed call runs none of this,
+            # so what an unpacked call of the same plan prepared must not stand in for it
+            plan.prep = (f, prep, outputs[:3])
             out = _plan.empty(None if fresh else pool, self.device, (self.num_vertices, 9), wp.float32)
             wp.launch(_s.pack_soft_state, dim=self.num_vertices, inputs=[outputs[3], outputs[4], *outputs[:3]],
                       outputs=[out], device=self.device)
             return [out]
 
+        self._soft_token = None
         outs = self._call(("soft-x", plan, packed), "soft", run)
         plan.fetch()
+        self._soft_token = plan.token = object() if packed else None
         return outs
 
     def _soft(self, x: wp.array, tau, kappa: float, strategy: str, pool: _plan.Pool | None, fresh: bool, *,
               bounds: _plan.Bounds | None = None):
-        """The launches of one VNC-soft call: ``([num, den, nsum, H, n], edge fields, backward closure)``.
+        """The launches of one VNC-soft call: ``([num, den, nsum, H, n], edge fields, backward closure, traversal)``,
+        the traversal ``(tau, cells, groups, edge records)`` (None for the BVH).
 
         ``pool``: scratch (None: new arrays, kept by the backward closure); ``fresh``: ``H`` and ``n`` are new arrays
         (else from ``pool``: a captured call's outputs); ``bounds``: a plan's (else from the host or the device)."""
@@ -443,10 +455,11 @@ class Engine:
             outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
         if strategy == "bvh":
             self._check_values(x, tau_arr)
-            return outputs, f, self._soft_bvh(x, tau_arr, kappa, f, outputs)
+            return outputs, f, self._soft_bvh(x, tau_arr, kappa, f, outputs), None
         b = bounds or self.host_bounds(x, radius_stats(tau)) or _plan.bounds(x, tau_arr)
         concrete = _plan.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0], self.tuning)
-        return outputs, f, self._soft_cells(x, tau_arr, kappa, f, outputs, b, concrete, pool, bounds is not None)
+        backward, prep = self._soft_cells(x, tau_arr, kappa, f, outputs, b, concrete, pool, bounds is not None)
+        return outputs, f, backward, (tau_arr, *prep)
 
     def _midpoint_bvh(self, f: EdgeFields) -> wp.Bvh:
         ne = f.mid.shape[0]
@@ -514,13 +527,14 @@ class Engine:
             self._soft_adjoint(x, tau_arr, kappa, f, cells, groups, pos, val, num, den, nsum, H.grad, n.grad, x.grad,
                                [f.mid.grad, f.length.grad, f.angle.grad, f.normal.grad], b, strategy, None, moving)
 
-        return backward
+        return backward, (cells, groups, pos, val)
 
     def _soft_adjoint(self, x, tau_arr, kappa, f, cells, groups, pos, val, num, den, nsum, H_grad, n_grad, x_grad,
                       edge_grads, b, strategy, pool, moving: bool) -> None:
         """The adjoint of the grid (or dense) VNC-soft over the forward's pairs: ``x_grad`` += the vertices' part
         (:func:`kernels.vnc_sums.soft_cells_kernel` with ``grad``), ``edge_grads`` (mid, length, angle, normal) += the
-        edges' (:func:`kernels.vnc_sums.soft_edge_adjoint`, a gather per edge over the vertices that reach it)."""
+        edges' (:func:`kernels.vnc_sums.soft_edge_adjoint_kernel`, a gather per edge over the vertices that reach
+        it)."""
         device = self.device
         t = self.tuning
         V, E = x.shape[0], f.mid.shape[0]
@@ -532,64 +546,88 @@ class Engine:
                   outputs=[unused, unused, gx], device=device, record_tape=False, block_dim=t.block_dim)
         wp.launch(_s.reduce_add_vec3, dim=V, inputs=[groups.order, gx], outputs=[x_grad], device=device,
                   record_tape=False)
-        # edges gather over the vertices whose ball (radius tau_k) reaches their midpoint: the largest radius is the
-        # edges' pad, so their own radii are zero
-        zero = _plan.zeros(pool, device, E, wp.float32)
-        vcells, egroups = _plan.plan(f.mid, zero, x, b, strategy, b.rmax, t, b.rmax, orders=self._edge_orders,
-                                     pool=pool)
+        # edges gather over the vertices whose ball (radius tau_k) reaches their midpoint: each edge's reach is the
+        # largest radius, taken on the device (a plan's bounds may be older than the radii)
+        top = _plan.zeros(pool, device, 1, wp.float32)
+        wp.launch(_s.largest, dim=V, inputs=[tau_arr], outputs=[top], device=device, record_tape=False)
+        reach = _plan.empty(pool, device, E, wp.float32)
+        wp.launch(_s.broadcast, dim=E, inputs=[top], outputs=[reach], device=device, record_tape=False)
+        vcells, egroups = _plan.plan(f.mid, reach, x, b, strategy, b.rmax, t, orders=self._edge_orders, pool=pool)
         vpos, vcoef, vgs = (_plan.empty(pool, device, V, wp.vec4) for _ in range(3))
         wp.launch(_s.pack_vertex_adjoints, dim=V,
                   inputs=[vcells.order, x, tau_arr, kappa, num, den, nsum, H_grad, n_grad],
                   outputs=[vpos, vcoef, vgs], device=device, record_tape=False)
         shape = (egroups.splits, egroups.padded)
         eparts = [_plan.empty(pool, device, shape, dt) for dt in (wp.float32, wp.float32, wp.vec3, wp.vec3)]
-        wp.launch(_s.soft_edge_adjoint, dim=egroups.dim,
-                  inputs=[f.mid, f.angle, f.normal, kappa, *egroups.args(vcells), vpos, vcoef, vgs],
-                  outputs=eparts, device=device, record_tape=False)
+        wp.launch(_s.soft_edge_adjoint_kernel(t.cull_on(device.is_cuda), moving), dim=egroups.dim,
+                  inputs=[f.mid, f.angle, f.normal, reach, kappa, *egroups.args(vcells), vpos, vcoef, vgs],
+                  outputs=eparts, device=device, record_tape=False, block_dim=t.block_dim)
         mid_g, length_g, angle_g, normal_g = edge_grads
         wp.launch(_s.reduce_edge_grads, dim=E, inputs=[egroups.order, f.length, f.angle, f.normal, *eparts],
                   outputs=[angle_g, length_g, normal_g, mid_g], device=device, record_tape=False)
 
-    def soft_state(self, x: wp.array, tau, kappa: float) -> wp.array:
-        """VNC-soft at device positions ``x`` for a differentiable op: (V, 9) float32 ``(H, n, N, D, S)`` per vertex, an
-        array of the caller's own (:meth:`soft_gradient` reads it back)."""
-        return self._soft_moving(self.positions(x), tau, check_kappa(kappa, soft=True), "auto", packed=True)[0]
+    def soft_state(self, x: wp.array, tau, kappa: float) -> tuple[wp.array, object]:
+        """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 9) float32
+        array of the caller's own, ``(H, n, N, D, S)`` per vertex, for :meth:`soft_gradient` with ``token``."""
+        state = self._soft_moving(self.positions(x), tau, check_kappa(kappa, soft=True), "auto", packed=True)[0]
+        return state, self._soft_token
 
-    def soft_gradient(self, x: wp.array, tau, kappa: float, state: wp.array, grads: wp.array) -> wp.array:
-        """The gradient of VNC-soft with respect to the positions ``x`` (those of a :meth:`soft_state` call that gave
-        ``state``) for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``): (V,) vec3, an array of
-        the caller's own. The launches (the edge fields, the traversal and both adjoint passes, the edge fields'
-        adjoint) are replayed from a graph over the plan of the forward call."""
+    def soft_gradient(self, x: wp.array, tau, kappa: float, state: wp.array, grads: wp.array,
+                      token: object = None) -> wp.array:
+        """The gradient of VNC-soft with respect to the positions ``x`` of a :meth:`soft_state` call that gave
+        ``(state, token)``, for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``): (V,) vec3,
+        an array of the caller's own. Both adjoint passes and the edge fields' adjoint run over the plan of the
+        forward call, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still
+        ``token``), over the traversal that call prepared, else after preparing it again."""
         kappa = check_kappa(kappa, soft=True)
         x = self.positions(x)
         t = host_scalar(tau, "tau")
-        plan = self._moving(("soft", "auto", kappa, "array" if t is None else t), x, tau, self._soft_bounds("auto"))
+        key = ("soft", "auto", kappa, "array" if t is None else t)
         V = self.num_vertices
+        plan = self._plans.get(key)
+        reuse = (plan is not None and token is not None and plan.token is token and self._soft_token is token
+                 and plan.prep is not None)
+        if not reuse:
+            plan = self._moving(key, x, tau, self._soft_bounds("auto"))
         saved = plan.saved
         if not saved:
             saved["state"] = wp.empty((V, 9), dtype=wp.float32, device=self.device)
             saved["grads"] = wp.empty((V, 4), dtype=wp.float32, device=self.device)
-        wp.copy(saved["state"], state)
         wp.copy(saved["grads"], grads)
+
+        def adjoint(pool, fresh, f, prep, sums, H_grad, n_grad):
+            device = self.device
+            E = f.mid.shape[0]
+            gx = _plan.zeros(None if fresh else pool, device, V, wp.vec3)
+            edge_grads = [_plan.zeros(pool, device, E, dt) for dt in (wp.vec3, wp.float32, wp.float32, wp.vec3)]
+            self._soft_adjoint(plan.x, prep[0], kappa, f, *prep[1:], *sums, H_grad, n_grad, gx, edge_grads,
+                               plan.bounds, plan.strategy, pool, True)
+            wp.launch(edge_geometry, dim=E, inputs=[plan.x, f.edges], outputs=[f.mid, f.length, f.angle, f.normal],
+                      adj_inputs=[gx, None], adj_outputs=edge_grads, adjoint=True, device=device)
+            return [gx]
+
+        if reuse:
+            def run(pool, fresh):
+                H_grad = _plan.empty(pool, self.device, V, wp.float32)
+                n_grad = _plan.empty(pool, self.device, V, wp.vec3)
+                wp.launch(_s.unpack_grads, dim=V, inputs=[saved["grads"]], outputs=[H_grad, n_grad],
+                          device=self.device)
+                f, prep, sums = plan.prep
+                return adjoint(pool, fresh, f, prep, sums, H_grad, n_grad)
+
+            return self._call(("soft-grad-reuse", plan), "soft-grad", run)[0]
+        wp.copy(saved["state"], state)
 
         def run(pool, fresh):
             device = self.device
             tau_arr = per_point(plan.tau if t is None else t, V, device, "tau", pool)
             f = self.fields(plan.x, pool=pool)
-            num, den = (_plan.empty(pool, device, V, wp.float32) for _ in range(2))
+            num, den, H_grad = (_plan.empty(pool, device, V, wp.float32) for _ in range(3))
             nsum, n_grad = (_plan.empty(pool, device, V, wp.vec3) for _ in range(2))
-            H_grad = _plan.empty(pool, device, V, wp.float32)
             wp.launch(_s.unpack_soft_state, dim=V, inputs=[saved["state"], saved["grads"]],
                       outputs=[num, den, nsum, H_grad, n_grad], device=device)
-            cells, groups, pos, val = self._soft_prepare(plan.x, tau_arr, f, plan.bounds, plan.strategy, pool)
-            gx = _plan.zeros(None if fresh else pool, device, V, wp.vec3)
-            E = f.mid.shape[0]
-            edge_grads = [_plan.zeros(pool, device, E, dt) for dt in (wp.vec3, wp.float32, wp.float32, wp.vec3)]
-            self._soft_adjoint(plan.x, tau_arr, kappa, f, cells, groups, pos, val, num, den, nsum, H_grad, n_grad,
-                               gx, edge_grads, plan.bounds, plan.strategy, pool, True)
-            wp.launch(edge_geometry, dim=E, inputs=[plan.x, f.edges], outputs=[f.mid, f.length, f.angle, f.normal],
-                      adj_inputs=[gx, None], adj_outputs=edge_grads, adjoint=True, device=device)
-            return [gx]
+            prep = (tau_arr, *self._soft_prepare(plan.x, tau_arr, f, plan.bounds, plan.strategy, pool))
+            return adjoint(pool, fresh, f, prep, (num, den, nsum), H_grad, n_grad)
 
         return self._call(("soft-grad", plan), "soft-grad", run)[0]
 
@@ -846,17 +884,15 @@ class Engine:
         x = self.positions(positions)
         key = ("curve", variant, tuple(taus.tolist()), k, strategy)
         taus_wp = self._taus(taus)
-        if strategy == "bvh":
+        if strategy == "bvh" or (positions is not None and variant == "hard"):
+            # (VNC-hard's traversal pads the balls by half the longest edge: no plan outlives the edges' lengths)
             return tuple(self._curve(x, taus, taus_wp, variant, k, strategy, self.pool("curve"), True))
         if positions is None:
             return tuple(self._call(key, "curve", lambda pool, fresh: self._curve(x, taus, taus_wp, variant, k,
                                                                                 strategy, pool, fresh)))
-        soft = variant == "soft"
 
         def bounds_of(x, radius):
-            f = self.fields(x)
-            b = _plan.bounds(x, radius, None if soft else f.length)
-            return b, strategy
+            return _plan.bounds(x, radius), strategy
 
         plan = self._moving(key, x, float(taus[-1]), bounds_of)
 

@@ -31,8 +31,9 @@ class _VncSoft(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, eng: Engine, tau, kappa: float):
         xw = wp.from_torch(x.detach(), dtype=wp.vec3)
-        state = wp.to_torch(eng.soft_state(xw, tau, kappa))
-        ctx.eng, ctx.tau, ctx.kappa, ctx.state = eng, tau, kappa, state
+        state, token = eng.soft_state(xw, tau, kappa)
+        state = wp.to_torch(state)
+        ctx.eng, ctx.tau, ctx.kappa, ctx.state, ctx.token = eng, tau, kappa, state, token
         ctx.save_for_backward(x)
         # views of one (V, 9) array; the sums of its last columns are what the backward pass reads
         return state[:, 0], state[:, 1:4]
@@ -42,7 +43,7 @@ class _VncSoft(torch.autograd.Function):
         (x,) = ctx.saved_tensors
         grads = torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1).to(torch.float32).contiguous()
         gx = ctx.eng.soft_gradient(wp.from_torch(x.detach(), dtype=wp.vec3), ctx.tau, ctx.kappa,
-                                   wp.from_torch(ctx.state), wp.from_torch(grads))
+                                   wp.from_torch(ctx.state), wp.from_torch(grads), ctx.token)
         return wp.to_torch(gx), None, None, None
 
 
