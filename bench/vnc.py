@@ -513,7 +513,7 @@ def eq1_section(b: Bench, mesh: vw.Mesh, info: dict) -> None:
             return {"points": count, "max_rel_diff": float(rel)}
 
         # warmed as trimesh is (its caches built at another radius): the pieces of the edges that this package
-        # keeps with a mesh on the CPU do not depend on the radius either (vnc_warp._pairs.CPU_PIECES)
+        # keeps with a mesh on the CPU do not depend on the radius either (vnc_warp.tuning.Tuning.cpu_pieces)
         vw.integrated_mean_curvature(mesh, 1.01 * r, pts[:1], device=cpu)
         ref = b.run(Row(name="integrated_mean_curvature", variant="warp-cpu",
                         note=f"{count} points, warmed at r x 1.01", **common), ours, warmup=False)

@@ -353,12 +353,23 @@ def _rank_pid(agent_pid: int, rank: int) -> int | None:
     return None
 
 
+def _listed_stages(folder):
+    """``{stage file: (sha256, mtime_ns)}`` of the stages a trajectory folder's manifest lists (empty without one)."""
+    man = folder / "manifest.json"
+    if not man.is_file():
+        return {}
+    return {st["file"]: (st["sha256"], (folder / st["file"]).stat().st_mtime_ns)
+            for st in json.loads(man.read_text())["stages"]}
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the torchrun workers through /proc")
 def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes, tmp_path):
     """Under torchrun (2 gloo ranks) a bad mesh killed its rank and torchrun the other one mid-flow, and nothing
     was recorded before the end; now the bad mesh is recorded and the batch goes on, every finished mesh is in
-    batch.json at once, and after a rank is killed (SIGKILL) a re-run keeps what it had finished and completes
-    the rest."""
+    batch.json at once, and after a rank is killed (SIGKILL) in the middle of a mesh a re-run finishes everything
+    once: finished meshes are skipped, the interrupted ones resume after their last stage (the stage files written
+    before the kill are neither recomputed nor rewritten), and the resumed trajectory is bit for bit the one an
+    uninterrupted run makes."""
     src = tmp_path / "in"
     src.mkdir()
     names = ["a0.obj", "a1.obj", "b0.obj", "b1.obj", "c0.obj", "zfin.obj"]  # rank 0: a0 b0 c0; rank 1: a1 b1 zfin
@@ -375,15 +386,22 @@ def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes,
         except (OSError, ValueError):
             entries = {}
         done1 = [m for m in entries.values() if m["rank"] == 1 and m["status"] == "done"]
-        if done1:
+        try:
+            # rank 1's second mesh has a finished stage and is not complete: kill it in the middle of that mesh
+            midway = 0 < len(_listed_stages(out / "b1.obj")) < 4
+        except (OSError, ValueError, KeyError):
+            midway = False
+        if done1 and midway:
             victim = _rank_pid(proc.pid, 1)
             if victim is not None:
                 os.kill(victim, signal.SIGKILL)
                 killed_after = sorted(m["mesh"] for m in done1)
                 break
-        time.sleep(0.05)
+        time.sleep(0.02)
     proc.communicate(timeout=120)
-    assert killed_after, "rank 1 finished a mesh and was killed while the batch was under way"
+    assert killed_after, "rank 1 finished a mesh and was killed in the middle of the next one"
+    before = {name: _listed_stages(out / name) for name in names[:-1]}
+    assert 0 < len(before["b1.obj"]) < 4, before["b1.obj"]
     again = _torchrun([src, out, "--stages", "3"], 29574)
     stdout, stderr = again.communicate(timeout=300)
     assert again.returncode != 0, "a failed mesh gives exit code 1"
@@ -394,6 +412,13 @@ def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes,
         assert e[name]["status"] == "skipped", (name, e[name])  # finished before the kill: not computed again
     for name in names[:-1]:
         assert Trajectory.load(out / name).complete, name
+        expected = "skipped" if len(before[name]) == 4 else "resumed" if before[name] else "done"
+        assert e[name]["status"] == expected, (name, e[name], len(before[name]))
+        after = _listed_stages(out / name)
+        assert {f: after[f] for f in before[name]} == before[name], name  # same bytes, not rewritten
+    reference = tmp_path / "uninterrupted"
+    _quiet_flow(str(src / "b1.obj"), reference, stages=3)
+    assert [v[0] for v in _listed_stages(reference).values()] == [v[0] for v in _listed_stages(out / "b1.obj").values()]
     assert "flow-batch: 6 mesh(es):" in stdout and "1 failed" in stdout
 
 

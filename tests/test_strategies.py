@@ -211,7 +211,7 @@ def _numpy_group_boxes(x, radius, order, size, per_thread, margin, pad, origin, 
 @pytest.mark.parametrize("per_thread,size", [(1, 32), (4, 128), (1, 16), (2, 8)])
 def test_group_boxes_match_numpy(per_thread, size, device):
     """The group boxes of two traversals at once (two pads, each on a grid of its own), gathered by per-warp maxima
-    and atomics on CUDA (kernels.vnc.group_max; groups of fewer than 32 threads share a warp), equal a float32 numpy
+    and atomics on CUDA (kernels.vnc_grid.group_max; groups of fewer than 32 threads share a warp), equal a float32 numpy
     reference: two clusters of balls of random radii, so that some groups span both and walk per-thread boxes, and
     a count that leaves the last group partial."""
     tuning = Tuning(group=size // per_thread, splits=1)

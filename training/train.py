@@ -9,12 +9,14 @@ head, the losses and the eikonal gradient norm); GPUs without bf16 fall back to 
 Data: any map-style Dataset whose items are dicts with ``surface`` (Ns, 6), ``queries`` (Nq, 3),
 ``tsdf`` (Nq,), ``near`` (Nq,) bool and ``t`` () (the contract of
 :class:`vnc_warp.training.data.TrajectoryDataset`; ``shape_id`` and ``stage`` too for
-``data.encoder_input="stage0"``). The C-VAEs encode the detailed stage-0 surface of a trajectory and
+``data.encoder_input="stage0"``, ``on_surface`` (S, 6) for the surface and normal terms). The C-VAEs encode the detailed stage-0 surface of a trajectory and
 decode the shape at the item's time t (:class:`Stage0Input`), as ``vnc-warp generate`` does; the
 plain VAE auto-encodes every item (``data.encoder_input="item"``).
 
 A run folder holds ``config.json``, ``log.jsonl`` (one row per ``log_every`` steps: step, epoch,
-loss terms, beta_kl, lr, grad_norm, samples/s) and ``checkpoints/last.pt``. Resuming continues from
+loss terms, beta_kl, lr, grad_norm, samples/s, and ``eval_tsdf``: L_tsdf of the step's last batch decoded as
+inference decodes, in eval mode from the posterior mean, beside ``tsdf`` decoded from posterior samples) and
+``checkpoints/last.pt``. Resuming continues from
 ``checkpoints/last.pt`` exactly: model, optimiser, scheduler, per-rank RNG states, the data-loader
 position and the partly filled log window are restored, so the losses equal those of an uninterrupted
 run (given items that are a deterministic function of their index, or ``num_workers=0``).
@@ -63,13 +65,15 @@ from vnc_warp._files import output_dir, write_bytes
 
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, unwrap
 from .config import TrainConfig
-from .losses import cvae_loss, kl_weight_at, select_eikonal_queries
+from .losses import cvae_loss, gradient_queries, kl_weight_at, tsdf_loss
 from .model import build_model
 
 __all__ = ["train", "open_dataset", "Stage0Input", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
            "TrainingInterrupted", "RUNTIME_KEYS", "SCHEDULE_KEYS"]
 
 REQUIRED_KEYS = ("surface", "queries", "tsdf", "near", "t")
+OPTIONAL_KEYS = ("on_surface",)
+_TERMS = ("loss", "tsdf", "kl", "eik", "surf", "normal")
 #: Settings a resumed run may change freely: how it runs, not what it computes.
 RUNTIME_KEYS = ("name", "data.num_workers", "log_every", "ckpt_every", "bf16")
 #: Settings a resumed run may change, stated in a warning: functions of the step, followed from the resume step on.
@@ -160,7 +164,9 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
         from .data import TrajectoryDataset
 
         dataset = TrajectoryDataset(root, num_surface=config.data.num_surface, num_queries=config.data.num_queries,
-                                    split=split, seed=config.seed)
+                                    near_fraction=config.data.near_fraction,
+                                    num_on_surface=config.data.num_on_surface,
+                                    fresh_fraction=config.data.fresh_fraction, split=split, seed=config.seed)
     return Stage0Input(dataset) if config.data.encoder_input == "stage0" else dataset
 
 
@@ -240,6 +246,9 @@ def _check_batch(batch: Any) -> None:
             raise ValueError(f"dataset key {key!r}: batched shape {got}, expected {shape} (None: any)")
     if batch["near"].dtype != torch.bool:
         raise ValueError(f"dataset key 'near' must be bool, got {batch['near'].dtype}")
+    if "on_surface" in batch and (batch["on_surface"].ndim != 3 or tuple(batch["on_surface"].shape[::2]) != (b, 6)):
+        raise ValueError(f"dataset key 'on_surface': batched shape {tuple(batch['on_surface'].shape)}, "
+                         f"expected ({b}, S, 6)")
 
 
 class _Log:
@@ -387,9 +396,9 @@ class _Window:
     """Loss sums of the steps since the last log row, and what is needed to name a non-finite step's batch."""
 
     def __init__(self, device: torch.device, state: dict | None) -> None:
-        self.sums = torch.zeros(5, dtype=torch.float64, device=device)  # loss, tsdf, kl, eik, grad_norm
+        self.sums = torch.zeros(len(_TERMS) + 1, dtype=torch.float64, device=device)  # _TERMS, grad_norm
         self.steps = 0
-        if state:
+        if state and len(state["sums"]) == self.sums.numel():
             self.sums += torch.tensor(state["sums"], dtype=torch.float64, device=device)
             self.steps = int(state["steps"])
         self.losses: list[torch.Tensor] = []
@@ -397,8 +406,7 @@ class _Window:
 
     def add(self, step: int, terms: dict, grad_norm: torch.Tensor, batch: dict) -> None:
         loss = terms["loss"].detach()
-        self.sums += torch.stack([loss, terms["tsdf"].detach(), terms["kl"].detach(), terms["eik"].detach(),
-                                  grad_norm.detach()]).double()
+        self.sums += torch.stack([*(terms[k].detach() for k in _TERMS), grad_norm.detach()]).double()
         self.steps += 1
         self.losses.append(loss.reshape(1))
         self.batches.append((step, batch.get("shape_id"), batch.get("stage")))
@@ -519,7 +527,6 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     if amp and not torch.cuda.is_bf16_supported():
         warnings.warn(f"{ctx.device} does not support bf16; training in float32", stacklevel=2)
         amp = False
-    eik = config.loss.eikonal_weight > 0
     log = _Log(out / "log.jsonl", keep_until=step if resuming else None) if ctx.is_main else None
     bar = tqdm(total=end, initial=step, disable=not (progress and ctx.is_main), desc=f"train {config.name}",
                dynamic_ncols=True)
@@ -559,12 +566,13 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                     if not checked:
                         _check_batch(batch)
                         checked = True
-                    b = {k: batch[k].to(ctx.device, non_blocking=True) for k in REQUIRED_KEYS}
-                    eik_q, eik_near = (select_eikonal_queries(b["queries"], b["near"], config.loss.eikonal_queries)
-                                       if eik else (None, None))
+                    b = {k: batch[k].to(ctx.device, non_blocking=True)
+                         for k in (*REQUIRED_KEYS, *OPTIONAL_KEYS) if k in batch}
+                    grad_q = gradient_queries(b, config.loss)
                     with torch.autocast(device_type=ctx.device.type, dtype=torch.bfloat16, enabled=amp):
-                        out_ = model(b["surface"], b["queries"], b["t"], eikonal_queries=eik_q)
-                    terms = cvae_loss(out_, b, config.loss, step=step, eikonal_queries=eik_q, eikonal_near=eik_near)
+                        out_ = model(b["surface"], b["queries"], b["t"],
+                                     eikonal_queries=None if grad_q is None else grad_q.points)
+                    terms = cvae_loss(out_, b, config.loss, step=step, gradient=grad_q)
                     opt.zero_grad(set_to_none=True)
                     terms["loss"].backward()
                     grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
@@ -581,11 +589,14 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                         stop = check(signals)
                     if at_log:
                         sums = window.sums
+                        eval_tsdf = _eval_tsdf(unwrap(model), b, config, amp)
                         if ctx.world_size > 1:
                             dist.all_reduce(sums)
+                            dist.all_reduce(eval_tsdf)
                         means = (sums / (window.steps * ctx.world_size)).tolist()
                         elapsed = time.perf_counter() - window_t0
-                        last = dict(zip(("loss", "tsdf", "kl", "eik", "grad_norm"), means))
+                        last = dict(zip((*_TERMS, "grad_norm"), means))
+                        last["eval_tsdf"] = float(eval_tsdf) / ctx.world_size
                         row = {"step": step, "epoch": epoch, **last, "beta_kl": kl_weight_at(step - 1, config.loss),
                                "lr": lr, "samples_per_s": window.steps * bs * ctx.world_size / max(elapsed, 1e-9)}
                         if log is not None:
@@ -610,6 +621,22 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device), "start_step": start_step,
             "step": step, "checkpoint": str(ckpt_path), "last": last,
             "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9)}
+
+
+@torch.no_grad()
+def _eval_tsdf(model: torch.nn.Module, b: dict[str, torch.Tensor], config: TrainConfig, amp: bool) -> torch.Tensor:
+    """L_tsdf of one batch decoded as inference decodes: eval mode, the posterior mean, the first FPS point fixed.
+
+    Training decodes posterior samples; a decoder that only works on those shows here as a gap to ``tsdf``.
+    """
+    model.eval()
+    try:
+        with torch.autocast(device_type=b["queries"].device.type, dtype=torch.bfloat16, enabled=amp):
+            out = model(b["surface"], b["queries"], b["t"])
+        return tsdf_loss(out["tsdf"], b["tsdf"], kind=config.loss.tsdf, near=b["near"],
+                         near_weight=config.loss.near_weight).double()
+    finally:
+        model.train()
 
 
 def _save(path: Path, model: torch.nn.Module, config: TrainConfig, step: int, opt: torch.optim.Optimizer,

@@ -6,7 +6,7 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
 * **Flow step**, Eq. (5): ``v_k <- v_k - lambda (H_soft(v_k, tau_k) - H_ref) n_soft(v_k, tau_k)`` with
   ``H_ref`` the vertex mean of ``H_soft`` at the current iterate (the scale-stable global reference: the
   mean barely depends on scale, Fig. 6, and taking it at the current state keeps the flow from drifting
-  inward or outward).
+  inward or outward), added in a fixed order (:func:`reference_mean`) so that a run repeats bit for bit.
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
   stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
@@ -42,7 +42,8 @@ from .operators import vnc_soft
 from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
 from .trajectory import Trajectory, resume
 
-__all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "total_complexity", "sphericity"]
+__all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "reference_mean", "total_complexity",
+           "sphericity"]
 
 
 class FlowError(RuntimeError):
@@ -132,13 +133,44 @@ def _mesh_digest(mesh: Mesh) -> str:
     return h.hexdigest()[:16]
 
 
-def _local_edge_length(mesh: Mesh, device) -> wp.array:
-    x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
-    e = wp.array(mesh.topology.edges, dtype=wp.vec2i, device=device)
-    total = wp.zeros(mesh.num_vertices, dtype=wp.float32, device=device)
-    count = wp.zeros(mesh.num_vertices, dtype=wp.float32, device=device)
-    wp.launch(_k.vertex_edge_length, dim=e.shape[0], inputs=[x, e], outputs=[total, count], device=device)
-    return wp.array(total.numpy() / np.maximum(count.numpy(), 1.0), dtype=wp.float32, device=device)
+def _local_edge_length(mesh: Mesh) -> np.ndarray:
+    """(V,) float32 mean length of each vertex's incident edges, in mesh units (float64 sums in edge order on the
+    host, so every device clamps the moves of Eq. (5) alike)."""
+    e = mesh.topology.edges
+    v = mesh.vertices.astype(np.float64)
+    length = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)
+    V = mesh.num_vertices
+    total = np.bincount(e[:, 0], length, V) + np.bincount(e[:, 1], length, V)
+    count = np.bincount(e[:, 0], minlength=V) + np.bincount(e[:, 1], minlength=V)
+    return (total / np.maximum(count, 1)).astype(np.float32)
+
+
+def reference_mean(H: wp.array, out: wp.array, *, partial: wp.array | None = None, tape: wp.Tape | None = None) -> None:
+    """``out[0] = mean_k H[k]``, the global reference ``H_ref`` of Eq. (5), added in a fixed order.
+
+    Float64 partial sums of a fixed stride (:data:`vnc_warp.kernels.flow.MEAN_PARTS`), then one thread adds them in
+    order: unlike an atomic float sum (whose order follows thread timing on CUDA) the result is the same on every
+    run and every device that computes the same ``H``, and within rounding of the float64 mean.
+
+    Args:
+        H: (V,) float32 values.
+        out: (1,) float32, overwritten.
+        partial: (MEAN_PARTS,) float64 scratch on ``H``'s device (allocated when None).
+        tape: the ``wp.Tape`` being recorded: the adjoint ``H.grad += out.grad / V`` is recorded on it.
+    """
+    device = H.device
+    V = H.shape[0]
+    if partial is None:
+        partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
+    wp.launch(_k.strided_sums, dim=partial.shape[0], inputs=[H], outputs=[partial], device=device, record_tape=False)
+    wp.launch(_k.ordered_mean, dim=1, inputs=[partial, wp.float64(1.0 / V)], outputs=[out], device=device,
+              record_tape=False)
+    if tape is not None:
+        def backward():
+            wp.launch(_k.mean_adjoint, dim=V, inputs=[out.grad, 1.0 / V], outputs=[H.grad], device=device,
+                      record_tape=False)
+
+        tape.record_func(backward=backward, arrays=[H, out])
 
 
 def flow_steps(
@@ -173,12 +205,13 @@ def flow_steps(
     V = mesh.num_vertices
     tau_arr = _per_point(tau, V, device, "tau")
     mm = _per_point(max_move, V, device, "max_move")
+    partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
     states = [positions]
     for _ in range(steps):
         x = states[-1]
         H, n = vnc_soft(mesh, tau_arr, kappa=kappa, positions=x, tape=tape)
         ref = wp.zeros(1, dtype=wp.float32, device=device, requires_grad=x.requires_grad)
-        wp.launch(_k.mean_value, dim=V, inputs=[H, 1.0 / V], outputs=[ref], device=device)
+        reference_mean(H, ref, partial=partial, tape=tape)
         out = wp.empty(V, dtype=wp.vec3, device=device, requires_grad=x.requires_grad)
         wp.launch(_k.flow_step, dim=V, inputs=[x, H, n, ref, float(lam), mm], outputs=[out], device=device)
         states.append(out)
@@ -194,6 +227,7 @@ class _Stepper:
         self.x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
         self.x_next = wp.empty_like(self.x)
         self.ref = wp.zeros(1, dtype=wp.float32, device=device)
+        self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.edge = mesh.mean_edge_length
         self.lam = None
         if p.method == "vnc":
@@ -204,7 +238,7 @@ class _Stepper:
             else:
                 t = taus[0] if p.scale_mode == "small" else taus[-1]
                 self.tau = wp.array(np.full(V, t, dtype=np.float32), device=device)
-            self.max_move = wp.array(p.step_fraction * _local_edge_length(mesh, device).numpy(), device=device)
+            self.max_move = wp.array(p.step_fraction * _local_edge_length(mesh), dtype=wp.float32, device=device)
         else:
             self._laplacian()
 
@@ -240,12 +274,11 @@ class _Stepper:
         p = self.p
         if p.method == "vnc":
             H, n = vnc_soft(self.mesh, self.tau, kappa=p.kappa, positions=self.x)
-            self.ref.zero_()
-            V = self.mesh.num_vertices
-            wp.launch(_k.mean_value, dim=V, inputs=[H, 1.0 / V], outputs=[self.ref], device=self.device)
+            reference_mean(H, self.ref, partial=self.partial)
             if self.lam is None:
                 q = float(np.quantile(np.abs(H.numpy() - self.ref.numpy()[0]), 0.9))
                 self.lam = min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
+            V = self.mesh.num_vertices
             wp.launch(_k.flow_step, dim=V, inputs=[self.x, H, n, self.ref, self.lam, self.max_move],
                       outputs=[self.x_next], device=self.device)
             self.x, self.x_next = self.x_next, self.x
@@ -259,6 +292,12 @@ class _Stepper:
 
     def current(self) -> Mesh:
         return Mesh(self.x.numpy(), self.mesh.faces, self.mesh.topology, self.mesh.name)
+
+
+def _as_saved(mesh: Mesh) -> Mesh:
+    """The state as a resumed run reads it back: float32 vertices with no float64 history (the stage PLY holds
+    float32), so that a run resumed from its files continues bit-identically to one never interrupted."""
+    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), mesh.faces, mesh.topology, mesh.name)
 
 
 def _check_state(mesh: Mesh) -> str | None:
@@ -319,7 +358,7 @@ def flow(
     traj = resume(out_dir, info) if out_dir is not None else None
     t_start = time.perf_counter()
     if traj is None:
-        m0 = sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src
+        m0 = _as_saved(sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src)
         taus = default_scales(m0, p.num_scales)
         S_init = total_complexity(m0, taus, kappa=p.kappa, device=device)
         if not S_init > 0:
@@ -346,7 +385,7 @@ def flow(
             cur = sdf_remesh(prev, faces=p.faces or traj.meshes[0].num_faces, resolution=p.resolution,
                              device=device) if (p.remesh and i > 1) else prev
             rec = _run_stage(cur, i, taus, S_init, phi_stage, p, device, bar)
-            state = rec.pop("_mesh")
+            state = _as_saved(rec.pop("_mesh"))
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             traj.meshes.append(state)
             traj.records.append(rec)

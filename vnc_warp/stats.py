@@ -18,7 +18,7 @@ def _numpy(x) -> np.ndarray:
 
 
 def pearson(x, y) -> float:
-    """Pearson correlation coefficient of two (N,) sequences; NaN when either is constant."""
+    """Pearson correlation coefficient of two (N,) sequences (NumPy or torch); NaN when either is constant."""
     x, y = _numpy(x).ravel(), _numpy(y).ravel()
     if x.shape != y.shape or x.size < 2:
         raise ValueError(f"pearson: need two equal-length sequences of >= 2 values, got {x.shape} and {y.shape}")
@@ -31,7 +31,7 @@ def pca(x, k: int = 2) -> dict[str, np.ndarray]:
     """Principal component analysis by SVD of the centred data.
 
     Args:
-        x: (N, C) samples.
+        x: (N, C) samples (NumPy or torch).
         k: number of components (<= min(N, C)).
 
     Returns:

@@ -101,6 +101,42 @@ def test_tsdf_labels_match_analytic_sphere(tmp_path, device, monkeypatch):
     assert np.einsum("ij,ij->i", n, radial).min() > 0.98
 
 
+def test_reference_queries_and_fresh_far_queries(tmp_path):
+    """Defect 5 of issue 24 (small fixed query pools): stage 1 (a shrunk sphere) gets far-flagged queries near
+    stage 0's larger sphere, labelled with stage 1's own TSDF; with a TSDF grid, every item draws new far queries
+    in the box, at least half the truncation from the surface, whose labels match the analytic TSDF of the sphere
+    (to the grid's interpolation), and two epochs draw different ones."""
+    traj = write_trajectory(tmp_path / "sphere", [icosphere(3, radius=RADIUS).with_vertices(
+        icosphere(3, radius=RADIUS).vertices + CENTER), _stages()[0].with_vertices(
+        0.6 * (_stages()[0].vertices - CENTER) + CENTER)], [1.0, 0.4])
+    build_dataset([traj], tmp_path / "data", device="cpu", progress=False, num_reference=600, grid_resolution=48,
+                  **SMALL)
+    shape = json.loads((tmp_path / "data" / "index.json").read_text())["shapes"][0]
+    c_n, r0 = (CENTER - np.array(shape["center"])) * shape["scale"], RADIUS * shape["scale"]
+    with np.load(tmp_path / "data" / shape["stages"][1]["file"]) as z:
+        q, tsdf, near, grid = z["queries"].astype(np.float64), z["tsdf"], z["near"], z["grid"]
+    assert q.shape == (3600, 3) and grid.shape == (48, 48, 48) and near.sum() == 1500
+    ref = q[1500:2100]  # after the uniform ones: near stage 0's sphere (radius r0), flagged far
+    assert not near[1500:2100].any() and np.abs(np.linalg.norm(ref - c_n, axis=1) - r0).mean() < 0.03
+    np.testing.assert_allclose(tsdf[1500:2100], np.clip(_analytic_sdf(ref, c_n, 0.6 * r0), -0.1, 0.1), atol=0.006)
+    ds = TrajectoryDataset(tmp_path / "data", num_surface=64, num_queries=400, near_fraction=0.5, fresh_fraction=1.0)
+    item = ds[1]
+    fresh, labels = item["queries"][:200].numpy().astype(np.float64), item["tsdf"][:200].numpy()
+    assert not item["near"][:200].any() and np.abs(labels).min() >= 0.05
+    truth = np.clip(_analytic_sdf(fresh, c_n, 0.6 * r0), -0.1, 0.1)
+    assert np.abs(labels - truth).max() < 0.01 and np.mean(np.abs(labels - truth)) < 0.002
+    ds.set_epoch(1)
+    assert not np.allclose(ds[1]["queries"][:200].numpy(), fresh)
+    with pytest.raises(ValueError, match="grid"):
+        TrajectoryDataset(_no_grid(tmp_path), fresh_fraction=0.5)
+
+
+def _no_grid(tmp_path):
+    traj = write_trajectory(tmp_path / "plain", _stages(), [1.0, 0.55])
+    build_dataset([traj], tmp_path / "plain_data", device="cpu", progress=False, **SMALL)
+    return tmp_path / "plain_data"
+
+
 def test_shared_normalization(built):
     """Every stage uses stage 0's normalization: centre = stage-0 bbox centre, scale = 1.8 / its max
     extent; stage-1 samples map back onto the stage-1 world mesh, and stage 1 (shrunk by 0.8) spans
@@ -208,6 +244,29 @@ def test_dataset_items_splits_and_seeding(built):
         TrajectoryDataset(base / "data", holdout=["gamma"])
     with pytest.raises(ValueError, match="empty"):
         TrajectoryDataset(base / "data", split="test")
+
+
+def test_on_surface_points_are_the_items_own(built):
+    """With num_on_surface, every item carries points and unit normals on its OWN stage's surface (the stage-1
+    sphere of radius 0.8 r, normalized), also when Stage0Input gives the encoder stage 0's surface (radius r); the
+    near fraction sets the share of near-surface queries (defect 5 of issue 24: on-surface and normal terms need
+    the item's own surface, and most queries near it)."""
+    from vnc_warp.training.train import Stage0Input
+
+    base, _, _ = built
+    ds = TrajectoryDataset(base / "data", num_surface=128, num_queries=400, holdout=["beta"], num_on_surface=200,
+                           near_fraction=0.8)
+    item, wrapped = ds[1], Stage0Input(ds)[1]
+    assert item["on_surface"].shape == (200, 6) and int(item["near"].sum()) == 320
+    assert torch.equal(wrapped["on_surface"], item["on_surface"])
+    shape = json.loads((base / "data" / "index.json").read_text())["shapes"][0]
+    r_norm = RADIUS * shape["scale"]
+    radius = lambda pts: torch.linalg.norm(pts[:, :3], dim=1).numpy()  # noqa: E731  (centred: bbox centre)
+    assert np.allclose(radius(wrapped["surface"]), r_norm, rtol=0.02)            # stage 0, encoder input
+    assert np.allclose(radius(item["on_surface"]), 0.8 * r_norm, rtol=0.06)      # stage 1, its own surface
+    pts, nrm = item["on_surface"][:, :3], item["on_surface"][:, 3:]
+    assert float((torch.nn.functional.normalize(pts, dim=1) * nrm).sum(1).min()) > 0.9  # outward normals
+    assert "on_surface" not in TrajectoryDataset(base / "data", num_surface=128, num_queries=400)[0]
 
 
 def test_partial_trajectory_and_bad_manifests(tmp_path):

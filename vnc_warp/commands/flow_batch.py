@@ -1,8 +1,9 @@
 """``vnc-warp flow-batch``: VNC-Flow over a folder of meshes, sharded across ``torchrun`` processes.
 
 Launch with ``torchrun --nproc_per_node=K -m vnc_warp.cli flow-batch IN OUT`` (or the ``vnc-warp`` script):
-rank r of W takes the meshes ``sorted(IN)[r::W]``, one GPU per rank (``cuda:LOCAL_RANK``) when there are
-GPUs. Each mesh's trajectory goes to ``OUT/<file name>/`` (the full name: ``shape.obj`` and ``shape.ply`` get a
+rank r of W takes the meshes ``sorted(IN)[r::W]``, one GPU per rank (``cuda:LOCAL_RANK``, modulo the GPUs present)
+when there are GPUs and ``--device`` is left out or given as ``cuda``; ``--device cuda:N`` puts every rank on
+GPU N. Each mesh's trajectory goes to ``OUT/<file name>/`` (the full name: ``shape.obj`` and ``shape.ply`` get a
 folder each), and each mesh ends in one of these states:
 
 * ``done``: computed; ``resumed``: an interrupted trajectory finished; ``skipped``: a finished trajectory with the
@@ -44,6 +45,24 @@ def add_arguments(p) -> None:
 def shard(names: list, rank: int, world: int) -> list:
     """The meshes rank ``rank`` of ``world`` processes: a strided split of the sorted names, no overlap."""
     return sorted(names)[rank::world]
+
+
+def rank_device(device: str | None, local_rank: int) -> str:
+    """The Warp device of the rank with ``LOCAL_RANK = local_rank``: ``cuda:<local_rank mod GPUs>`` for ``None`` (when
+    there is a GPU, else ``cpu``) and for a bare ``cuda``; any other name as given."""
+    import warp as wp
+
+    from vnc_warp._device import init
+
+    init()
+    if device is None and not wp.is_cuda_available():
+        return "cpu"
+    if device is None or device == "cuda":
+        count = wp.get_cuda_device_count()
+        if count == 0:
+            raise ValueError("--device cuda: no CUDA device is available to Warp")
+        return f"cuda:{local_rank % count}"
+    return device
 
 
 def read_record(path: Path) -> dict:
@@ -116,8 +135,6 @@ def _line(entry: dict) -> str:
 
 
 def run(args) -> int:
-    import warp as wp
-
     from vnc_warp._files import output_dir
 
     rank = int(os.environ.get("RANK", 0))
@@ -132,8 +149,7 @@ def run(args) -> int:
     output_dir(out_dir, what="output folder")
     read_record(out_dir / RECORD)
     kw = flow_kwargs(args)
-    if kw["device"] is None:
-        kw["device"] = f"cuda:{local % wp.get_cuda_device_count()}" if wp.is_cuda_available() else "cpu"
+    kw["device"] = rank_device(kw["device"], local)
     dist = None
     if world > 1:
         import torch.distributed as dist
@@ -142,7 +158,7 @@ def run(args) -> int:
     prefix = f"[rank {rank}] " if world > 1 else ""
     try:
         for name in shard(names, rank, world):
-            entry = {"mesh": name, "folder": name, "rank": rank}
+            entry = {"mesh": name, "folder": name, "rank": rank, "device": kw["device"]}
             entry.update(_flow_one(in_dir / name, out_dir / name, kw))
             entry["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
             _store(out_dir, entry, world)
