@@ -98,7 +98,7 @@ def _cvae_figures(checkpoint, mesh, traj, out: Path, device, resolution: int, si
     import torch
 
     from vnc_warp import figures
-    from vnc_warp.training.checkpoint import load_model
+    from vnc_warp.training.model import load_model
     from vnc_warp.training.inference import decode_mesh, surface_condition
     from vnc_warp._device import torch_device
 

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         baseline = None
         if args.baseline is not None:
             from vnc_warp.training.baseline import latent_interpolation
-            from vnc_warp.training.checkpoint import load_model
+            from vnc_warp.training.model import load_model
             from vnc_warp._device import torch_device
 
             model, config = load_model(args.baseline, device=torch_device(args.device))
