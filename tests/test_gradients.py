@@ -15,6 +15,16 @@ from vnc_warp.torch import vnc_hard, vnc_soft
 from vnc_warp.tuning import Tuning
 
 
+CUDA = wp.is_cuda_available() and torch.cuda.is_available()
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not CUDA, reason="needs a CUDA device (Warp and torch): the gradients are checked there too"))])
+def device(request):
+    """Every gradient test that takes ``device`` runs on the CPU and on CUDA (skipped, saying so, without CUDA)."""
+    return request.param
+
+
 def _mesh(seed=0):
     tm = trimesh.creation.icosphere(2, radius=1.0)
     rng = np.random.default_rng(seed)
