@@ -11,7 +11,7 @@ Every row is also set beside the same row of an earlier run (``--baseline``, by 
 ``docs/results/bench_h200.json``): its median there and the quotient, so that one run says whether anything got
 slower; the goals list the rows more than 3 % slower than the baseline.
 
-    python -m bench.vnc --device cuda:0 --out bench.json        # the full GPU run (about 6 minutes)
+    python -m bench.vnc --device cuda:0 --meshes meshes --out results/   # the full GPU run (about 6 minutes)
     python -m bench.vnc --device cpu --quick                    # a CPU smoke run (well under a minute)
     python -m bench.vnc --device cpu --sizes 10k --sections eq1 # Eq. (1) against trimesh on spot.obj
 """
@@ -45,7 +45,10 @@ from vnc_warp.tuning import Tuning
 
 vflow = importlib.import_module("vnc_warp.flow")  # the module; `vnc_warp.flow` the attribute is the function
 
-MESH_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+# the real meshes: a folder `meshes/` at the repository's root (a GPU machine's copy), else ../shared/data/meshes
+_REPO = Path(__file__).resolve().parents[1]
+MESH_DIR = next((d for d in (_REPO / "meshes", _REPO.parent / "shared" / "data" / "meshes") if d.is_dir()),
+                _REPO.parent / "shared" / "data" / "meshes")
 BASELINE = Path(__file__).resolve().parents[1] / "docs" / "results" / "bench_h200.json"
 
 # size name -> (file, trimesh subdivisions); subdivided meshes show how cost grows with V
@@ -812,7 +815,9 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(prog="python -m bench.vnc", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0); default: Warp's preferred device")
-    p.add_argument("--out", default="bench/results/bench.json", help="JSON output (a .md copy of the tables beside it)")
+    p.add_argument("--out", default="bench/results/bench.json",
+                   help="JSON output (a .md copy of the tables beside it); a path not ending in .json is a folder, "
+                        "which gets bench.json and bench.md")
     p.add_argument("--quick", action="store_true", help="a small smoke run: 3k-vertex Spot, three scales, tiny flow")
     p.add_argument("--sizes", default=None,
                    help=f"comma-separated sizes from {', '.join(SIZES)}; default: 50k,50k-koala,10k,200k,800k,15k,"
@@ -824,7 +829,8 @@ def parse_args(argv=None):
     p.add_argument("--max-minutes", type=float, default=None,
                    help="wall-clock budget; rows past it are reported as skipped (default 6 on CUDA, 30 on the CPU, "
                         "1 with --quick)")
-    p.add_argument("--meshes", type=Path, default=MESH_DIR, help="folder of the real meshes")
+    p.add_argument("--meshes", type=Path, default=MESH_DIR,
+                   help="folder of the real meshes (nefertiti.obj, koala.obj, spot.obj, armadillo.obj, hammer.obj)")
     p.add_argument("--trajectory-mesh", default="50k-koala", help="size whose mesh the trajectory starts from")
     p.add_argument("--trajectory-faces", type=int, default=50_000, help="face count of the remeshed flow states")
     p.add_argument("--stages", type=int, default=32, help="stages of the trajectory")
@@ -833,6 +839,8 @@ def parse_args(argv=None):
                    help="JSON of an earlier run whose rows each row is set beside (compared when it ran on a device "
                         "of the same name); '' for none")
     args = p.parse_args(argv)
+    if not args.out.endswith(".json"):
+        args.out = str(Path(args.out) / "bench.json")
     device = get_device(args.device)
     if args.sizes is None:
         args.sizes = "3k" if args.quick else ("50k,50k-koala,10k,200k,800k,15k,30k-hammer" if device.is_cuda

@@ -134,3 +134,23 @@ def test_counts_of_a_call(tmp_path):
     assert calls["vnc_soft (positions=)"].get("read back", 0) == 0
     assert calls["vnc_soft (positions=)"]["graph launch"] == 1 and "launch" not in calls["vnc_soft (positions=)"]
     assert calls["torch vnc_soft forward + backward"]["graph launch"] == 2
+
+
+def test_out_folder_and_baseline_rows(tmp_path):
+    """``--out`` naming a folder writes ``bench.json`` there; each row is set beside the same row of ``--baseline``
+    (mesh, scale, name, variant) and a row more than 3 % slower is listed by the goal, a faster one is not."""
+    args = bench.parse_args(["--device", "cpu", "--quick", "--out", str(tmp_path / "res")])
+    assert args.out == str(tmp_path / "res" / "bench.json")
+    base = tmp_path / "base.json"
+    old = [{"mesh": "m", "tau_label": "2 l", "name": n, "variant": "auto", "median_ms": 10.0, "status": "ok"}
+           for n in ("slow", "fast")]
+    base.write_text(json.dumps({"device": {"name": "CPU"}, "date": "2026-11-21", "rows": old}))
+    args = bench.parse_args(["--device", "cpu", "--out", str(tmp_path / "res"), "--baseline", str(base)])
+    b = bench.Bench(args)
+    for name, ms in (("slow", 10.4), ("fast", 9.0)):
+        b.rows.append(bench.Row(section="operator", mesh="m", name=name, variant="auto", tau_label="2 l",
+                                median_ms=ms))
+    bench.compare_baseline(b)
+    assert [round(r.extra["vs_baseline"], 3) for r in b.rows] == [1.04, 0.9]
+    goal = next(g for g in bench.goals(b) if g["goal"].startswith("Every row of the baseline"))
+    assert goal["met"] is False and goal["measured"] == 1 and "slow[auto] 1.040x" in goal["detail"]
