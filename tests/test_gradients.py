@@ -278,3 +278,28 @@ def test_torch_gradient_as_positions_and_scales_change(device):
         g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
         assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
     assert len(eng._plans) == 1
+
+
+def test_torch_gradient_after_a_plain_call_of_the_same_plan(device):
+    """A call with ``positions=`` of the same plan between the torch op's replayed forward pass and its backward pass
+    (a flow's own step beside a loss) does not lend the backward pass its traversal: the gradient stays the float64
+    dense reference's to 1e-5 of its largest entry."""
+    mesh = _mesh(4)
+    V = mesh.num_vertices
+    wH, wn = _objective_weights(V, 5)
+    replay = Tuning(replay=("cpu", "cuda"))
+    eng = vw.engine(mesh, device, tuning=replay)
+    v = torch.tensor(mesh.vertices, dtype=torch.float32, device=device, requires_grad=True)
+    for _ in range(3):  # the forward pass alone, until it is replayed from a graph
+        vnc_soft(v, mesh, 0.5, tuning=replay)
+    centred = mesh.vertices - 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+    other = wp.array((1.03 * centred).astype(np.float32), dtype=wp.vec3, device=device)
+    eng.vnc_soft(0.5, positions=other)
+    assert len(eng._plans) == 1  # the same plan as the torch op's
+    H, n = vnc_soft(v, mesh, 0.5, tuning=replay)
+    ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
+    v64 = torch.tensor(mesh.vertices, dtype=torch.float64, requires_grad=True)
+    H64, n64 = dense_soft(v64, mesh.faces, 0.5)
+    ((H64 * wH).sum() + (n64 * wn).sum()).backward()
+    g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
+    assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), np.abs(g - g64).max() / np.abs(g64).max()
