@@ -128,3 +128,33 @@ def test_no_test_patches_a_package_constant():
                     if isinstance(t, ast.Attribute) and t.attr.isupper() and isinstance(t.value, ast.Name):
                         bad.append(f"{path.name}:{node.lineno}")
     assert bad == []
+
+
+def test_readme_equation_table_names_exist():
+    """Every name of the README's table "equation -> public function -> kernel file" exists: the public functions
+    in the package, each term and kernel as a function of the kernel files (``kernels/vnc_*.py``)."""
+    import importlib
+    import re
+
+    import vnc_warp as vw
+
+    text = (ROOT / "README.md").read_text()
+    start = text.index("| equation | public function |")
+    table = text[start:text.index("\n\n", start)].splitlines()
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in table]
+    kernels = {n.name for f in (ROOT / "kernels").glob("vnc_*.py") for n in ast.walk(ast.parse(f.read_text()))
+               if isinstance(n, ast.FunctionDef)}
+    public = 0
+    for row in rows[2:]:
+        assert len(row) == len(rows[0]), row
+        for name in re.findall(r"`([A-Za-z_][\w.]*)`", row[1]):
+            head, _, attr = name.rpartition(".")
+            if head.startswith("vw."):
+                owner = getattr(vw, head[3:])
+            else:
+                owner = vw if head == "vw" else importlib.import_module(head)
+            assert callable(getattr(owner, attr, None)), name
+            public += 1
+        names = [n for cell in row[2:] for n in re.findall(r"`([A-Za-z_]\w*)`", cell)]
+        assert names and all(n in kernels for n in names), [n for n in names if n not in kernels]
+    assert public >= 9
