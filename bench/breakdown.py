@@ -20,8 +20,8 @@ import numpy as np
 import warp as wp
 
 import vnc_warp as vw
-from vnc_warp import _replay
 from vnc_warp._device import get_device
+from vnc_warp.tuning import Tuning
 
 from .vnc import MESH_DIR
 
@@ -86,12 +86,11 @@ def main(argv=None) -> int:
                     help="soft_x: VNC-soft with the positions given as a device array (as a flow step calls it)")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-graphs", action="store_true",
-                    help="run every call as launched (no graph replay, vnc_warp._replay), to see its kernels")
+                    help="run every call as launched (no graph replay: Tuning(replay=())), to see its kernels")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     device = get_device(args.device)
-    if args.no_graphs:
-        _replay.DEVICES = set()
+    tuning = Tuning(replay=()) if args.no_graphs else None
     mesh = load(args.mesh, args.subdivide)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     rows = []
@@ -101,19 +100,19 @@ def main(argv=None) -> int:
         for spec in args.taus if op != "curve" else ["16 scales"]:
             if op == "soft":
                 tau = _tau(mesh, spec)
-                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, device=device)  # noqa: E731
+                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, device=device, tuning=tuning)  # noqa: E731
             elif op == "soft_x":
                 tau = _tau(mesh, spec)
-                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, positions=x)  # noqa: E731
+                fn = lambda tau=tau: vw.vnc_soft(mesh, tau, positions=x, tuning=tuning)  # noqa: E731
             elif op == "hard":
                 tau = _tau(mesh, spec)
-                fn = lambda tau=tau: vw.vnc_hard(mesh, tau, device=device)  # noqa: E731
+                fn = lambda tau=tau: vw.vnc_hard(mesh, tau, device=device, tuning=tuning)  # noqa: E731
             else:
-                c = vw.scale_curve(mesh, device=device)
+                c = vw.scale_curve(mesh, device=device, tuning=tuning)
                 phi = float(np.median(vw.vnc_auc(c).numpy()))
 
                 def fn(phi=phi):
-                    c = vw.scale_curve(mesh, device=device)
+                    c = vw.scale_curve(mesh, device=device, tuning=tuning)
                     vw.vnc_auc(c)
                     vw.adaptive_scale(c, phi=phi)
             fn()

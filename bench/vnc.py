@@ -4,10 +4,14 @@ One process, one device; every row is timed the same way: a warm-up call (kernel
 ``n`` calls each bracketed by a device synchronisation, reporting the median and the spread. Rows on the same
 mesh and scale carry a ratio against this package's row they compete with (``ratio = row / reference``; above
 1 means the package is faster). A row that fails, or would take too long, is reported as such, never crashes
-the run. The JSON (``--out``) holds the device, versions, mesh sizes, every row and the goals of the issue,
+the run. The JSON (``--out``) holds the device, versions, mesh sizes, every row and the goals of the issues,
 with a Markdown copy of the tables beside it.
 
-    python -m bench.vnc --device cuda:0 --out bench.json        # the full GPU run (about 6 minutes)
+Every row is also set beside the same row of an earlier run (``--baseline``, by default
+``docs/results/bench_h200.json``): its median there and the quotient, so that one run says whether anything got
+slower; the goals list the rows more than 3 % slower than the baseline.
+
+    python -m bench.vnc --device cuda:0 --meshes meshes --out results/   # the full GPU run (about 6 minutes)
     python -m bench.vnc --device cpu --quick                    # a CPU smoke run (well under a minute)
     python -m bench.vnc --device cpu --sizes 10k --sections eq1 # Eq. (1) against trimesh on spot.obj
 """
@@ -37,10 +41,15 @@ import warp as wp
 
 import vnc_warp as vw
 from vnc_warp._device import get_device
+from vnc_warp.tuning import Tuning
 
 vflow = importlib.import_module("vnc_warp.flow")  # the module; `vnc_warp.flow` the attribute is the function
 
-MESH_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+# the real meshes: a folder `meshes/` at the repository's root (a GPU machine's copy), else ../shared/data/meshes
+_REPO = Path(__file__).resolve().parents[1]
+MESH_DIR = next((d for d in (_REPO / "meshes", _REPO.parent / "shared" / "data" / "meshes") if d.is_dir()),
+                _REPO.parent / "shared" / "data" / "meshes")
+BASELINE = Path(__file__).resolve().parents[1] / "docs" / "results" / "bench_h200.json"
 
 # size name -> (file, trimesh subdivisions); subdivided meshes show how cost grows with V
 SIZES = {
@@ -51,6 +60,7 @@ SIZES = {
     "50k-koala": ("koala.obj", 0),
     "200k": ("nefertiti.obj", 1),
     "800k": ("nefertiti.obj", 2),
+    "30k-hammer": ("hammer.obj", 0),
 }
 SECTIONS = ("operator", "scale", "eq1", "flow", "trajectory")
 # scales: multiples of the mean edge length l, or fractions of the bounding-box diagonal
@@ -112,24 +122,16 @@ def measure(fn, device: wp.Device, *, target_s: float, max_repeats: int, min_rep
 def peak_bytes(fn, device: wp.Device) -> int | None:
     """Peak Warp allocation on ``device`` during one call (``wp.ScopedMemoryTracker``), None if unreadable.
 
-    The operators keep their scratch buffers between calls (``vnc_warp._pairs.Pool``) and replay repeated calls
-    from graphs over scratch of their own (``vnc_warp._replay``): the pool is dropped first and replay is off for
-    the call, so it allocates, and is charged for, all of its memory (a replayed call holds the same scratch)."""
-    from vnc_warp import _replay
-    from vnc_warp._pairs import Pool
-
-    Pool.clear()
+    The engines keep their scratch buffers between calls and replay repeated calls from graphs over scratch of
+    their own: ``fn`` should run on a fresh engine without replay (``vw.Engine(mesh, device, Tuning(replay=()))``),
+    so that it allocates, and is charged for, all of its memory (a replayed call holds the same scratch)."""
     _synchronize(device)
     out = io.StringIO()
-    replay, _replay.DEVICES = _replay.DEVICES, set()
-    try:
-        with wp.ScopedMemoryTracker("bench", print=False) as tracker:
-            tracker.clear()
-            fn()
-            _synchronize(device)
-            tracker.report(file=out)
-    finally:
-        _replay.DEVICES = replay
+    with wp.ScopedMemoryTracker("bench", print=False) as tracker:
+        tracker.clear()
+        fn()
+        _synchronize(device)
+        tracker.report(file=out)
     units = {"B": 1, "KB": 1 << 10, "MB": 1 << 20, "GB": 1 << 30, "TB": 1 << 40}
     text = out.getvalue()
     block = text.split("Peak usage:", 1)[1] if "Peak usage:" in text else ""
@@ -197,6 +199,7 @@ class Bench:
         self.target_s = 0.05 if args.quick else (0.2 if self.device.is_cuda else 1.0)
         self.max_repeats = 2 if args.quick else 20
         self.min_repeats = 1 if args.quick else 3
+        self.baseline, self.baseline_note = load_baseline(args.baseline, self.device)
 
     # time budget: the trajectory keeps a reserve, every other section stops at the reserve
     def time_left(self, reserve: float = 0.0) -> float:
@@ -243,10 +246,46 @@ def _format_row(r: Row) -> str:
     t = "-" if r.median_ms is None else f"{r.median_ms:10.3f}"
     spread = "" if r.iqr_pct is None else f"{r.iqr_pct:5.1f}%"
     ratio = "" if r.ratio is None else f"{r.ratio:8.2f}x"
+    base = r.extra.get("baseline_ms")
+    before = "" if base is None else f"{base:10.3f}"
+    vs = r.extra.get("vs_baseline")
+    verdict = "" if vs is None else f"{vs:6.3f}{' SLOWER' if vs > SLOWER else ''}"
     note = r.note if r.status == "ok" else f"{r.status.upper()}: {r.note}"
-    extra = ", ".join(f"{k}={_short(v)}" for k, v in r.extra.items() if k != "traceback")
+    extra = ", ".join(f"{k}={_short(v)}" for k, v in r.extra.items()
+                      if k not in ("traceback", "baseline_ms", "vs_baseline"))
     return (f"{r.mesh[:14]:14s} {r.tau_label:7s} {r.name[:26]:26s} {r.variant[:13]:13s} {t:>10s} {spread:>6s} "
-            f"{ratio:>9s}  {note} {extra}").rstrip()
+            f"{ratio:>9s} {before:>10s} {verdict:>13s}  {note} {extra}").rstrip()
+
+
+# a row this much slower than the same row of the baseline run counts as slower (issue 22: within 3 %)
+SLOWER = 1.03
+
+
+def load_baseline(path, device: wp.Device) -> tuple[dict, str]:
+    """The rows of an earlier run (``--baseline``) by ``(mesh, scale, name, variant)``, when it ran on a device of the
+    same name; else none, and why."""
+    if not path:
+        return {}, "no baseline"
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        return {}, f"baseline {path} unreadable ({type(exc).__name__})"
+    name = doc.get("device", {}).get("name")
+    if name != device.name:
+        return {}, f"baseline {path} ran on {name}, this run on {device.name}: not compared"
+    rows = {(r["mesh"], r["tau_label"], r["name"], r["variant"]): r for r in doc.get("rows", [])
+            if r.get("status") == "ok" and r.get("median_ms")}
+    return rows, f"baseline {path} ({doc.get('date', '?')[:10]}, {len(rows)} rows)"
+
+
+def compare_baseline(b: Bench) -> None:
+    """Each row beside the same row of the baseline: ``extra["baseline_ms"]`` and ``extra["vs_baseline"]`` (this
+    median / the baseline's; above :data:`SLOWER` the row got slower)."""
+    for r in b.rows:
+        old = b.baseline.get((r.mesh, r.tau_label, r.name, r.variant))
+        if old is not None and r.status == "ok" and r.median_ms:
+            r.extra["baseline_ms"] = old["median_ms"]
+            r.extra["vs_baseline"] = r.median_ms / old["median_ms"]
 
 
 def _short(v):
@@ -314,13 +353,15 @@ def operator_section(b: Bench, mesh: vw.Mesh, info: dict, taus, full: bool) -> N
                     lambda: vw.vnc_soft(mesh, tau, device=dev), skip=skip,
                     check=lambda: {"chosen": vw.choose_strategy(mesh, tau, device=dev), "pairs_in_reach": pairs})
         if ref.status == "ok" and not b.args.quick:
-            nbytes = _safe(lambda: peak_bytes(lambda: vw.vnc_soft(mesh, tau, device=dev), dev))
+            fresh = vw.Engine(mesh, dev, Tuning(replay=()))  # no scratch yet, nothing replayed
+            fresh.x, fresh.edges  # the mesh's own arrays (kept by every engine) are not the call's
+            nbytes = _safe(lambda: peak_bytes(lambda: fresh.vnc_soft(tau), dev))
             if nbytes:
                 ref.extra["peak_MB"] = nbytes / 2**20
                 ref.extra["bytes_per_V+E"] = nbytes / (V + E)
             ref.extra.update(_safe(lambda: gpu_profile(lambda: vw.vnc_soft(mesh, tau, device=dev), dev)) or {})
-        # the same call with the positions given as a device array (a flow step): its bounds are read back
-        b.run(Row(name="vnc_soft", variant="positions", note="positions=wp.array: one read of the bounds from the device",
+        # the same call with the positions given as a device array (a flow step): planned once, then replayed
+        b.run(Row(name="vnc_soft", variant="positions", note="positions=wp.array: planned once, replayed",
                   **common), lambda: vw.vnc_soft(mesh, tau, positions=x), skip=skip, reference=ref)
         for strategy in ("grid", "dense", "bvh") if full else ():
             limit = lim[strategy]
@@ -330,10 +371,10 @@ def operator_section(b: Bench, mesh: vw.Mesh, info: dict, taus, full: bool) -> N
                   skip=None if work <= limit else f"~{work:.2g} pairs for this strategy", reference=ref,
                   repeats=3 if strategy == "bvh" else None)
         hard_pairs = pairs_in_reach(V, E, A, tau + 0.5 * info["mean_edge_length"])
-        b.run(Row(name="vnc_hard", variant="auto", **common), lambda: vw.vnc_hard(mesh, tau, device=dev),
-              skip=None if hard_pairs <= lim["grid"] else f"~{hard_pairs:.2g} pairs in reach", reference=ref,
-              check=lambda: {"chosen": vw.choose_strategy(mesh, tau, variant="hard", device=dev)})
-        _torch_rows(b, mesh, tau, common, ref, torch_dev, torch_why, full)
+        hard = b.run(Row(name="vnc_hard", variant="auto", **common), lambda: vw.vnc_hard(mesh, tau, device=dev),
+                     skip=None if hard_pairs <= lim["grid"] else f"~{hard_pairs:.2g} pairs in reach", reference=ref,
+                     check=lambda: {"chosen": vw.choose_strategy(mesh, tau, variant="hard", device=dev)})
+        _torch_rows(b, mesh, tau, common, ref, hard, torch_dev, torch_why, full)
 
 
 def _torch_device(dev: wp.Device):
@@ -348,18 +389,23 @@ def _torch_device(dev: wp.Device):
     return torch.device("cpu"), None
 
 
-def _torch_rows(b: Bench, mesh, tau, common, ref: Row, torch_dev, torch_why, full: bool) -> None:
+def _torch_rows(b: Bench, mesh, tau, common, ref: Row, hard: Row, torch_dev, torch_why, full: bool) -> None:
+    """The dense PyTorch Eq. (3) (``full``), and the torch ops: VNC-soft forward, forward + backward, and VNC-hard
+    forward + backward (against the Warp forwards ``ref`` and ``hard``)."""
     from bench.torch_dense import vnc_soft_dense
 
     V, E = mesh.num_vertices, mesh.topology.num_interior
     lim = b.limits
+    names = [("vnc_soft_fwd", "torch"), ("vnc_soft_fwd+bwd", "torch.autograd"), ("vnc_hard_fwd+bwd", "torch.autograd")]
     if torch_dev is None:
         if full:
             b.run(Row(name="torch_dense_eq3", variant="pytorch", **common), None, skip=torch_why)
-        b.run(Row(name="vnc_soft_fwd+bwd", variant="torch.autograd", **common), None, skip=torch_why)
+        for name, variant in names:
+            b.run(Row(name=name, variant=variant, **common), None, skip=torch_why)
         return
     import torch
 
+    from vnc_warp.torch import vnc_hard as vnc_hard_torch
     from vnc_warp.torch import vnc_soft as vnc_soft_torch
 
     verts = torch.tensor(mesh.vertices, dtype=torch.float32, device=torch_dev)
@@ -385,14 +431,22 @@ def _torch_rows(b: Bench, mesh, tau, common, ref: Row, torch_dev, torch_why, ful
               dense, skip=None if V * E <= lim["torch"] else f"{V * E:.2g} pairs", reference=ref, check=agreement)
     v = verts.clone().requires_grad_(True)
 
-    def fwd_bwd():
-        H, n = vnc_soft_torch(v, mesh, float(tau))
+    def fwd():
+        with torch.no_grad():
+            vnc_soft_torch(verts, mesh, float(tau))
+
+    def fwd_bwd(op):
+        H, n = op(v, mesh, float(tau))
         (H.sum() + n[:, 2].sum()).backward()
         v.grad = None
 
     pairs = pairs_in_reach(V, E, mesh.area(), tau)
-    b.run(Row(name="vnc_soft_fwd+bwd", variant="torch.autograd", **common), fwd_bwd,
-          skip=None if pairs <= lim["grad"] else f"~{pairs:.2g} pairs in reach", reference=ref)
+    skip = None if pairs <= lim["grad"] else f"~{pairs:.2g} pairs in reach"
+    b.run(Row(name="vnc_soft_fwd", variant="torch", **common), fwd, skip=skip, reference=ref)
+    b.run(Row(name="vnc_soft_fwd+bwd", variant="torch.autograd", **common), lambda: fwd_bwd(vnc_soft_torch),
+          skip=skip, reference=ref)
+    b.run(Row(name="vnc_hard_fwd+bwd", variant="torch.autograd", **common), lambda: fwd_bwd(vnc_hard_torch),
+          skip=skip, reference=hard)
 
 
 def scale_section(b: Bench, mesh: vw.Mesh, info: dict, full: bool) -> None:
@@ -462,7 +516,7 @@ def eq1_section(b: Bench, mesh: vw.Mesh, info: dict) -> None:
             return {"points": count, "max_rel_diff": float(rel)}
 
         # warmed as trimesh is (its caches built at another radius): the pieces of the edges that this package
-        # keeps with a mesh on the CPU do not depend on the radius either (vnc_warp._pairs.CPU_PIECES)
+        # keeps with a mesh on the CPU do not depend on the radius either (vnc_warp.tuning.Tuning.cpu_pieces)
         vw.integrated_mean_curvature(mesh, 1.01 * r, pts[:1], device=cpu)
         ref = b.run(Row(name="integrated_mean_curvature", variant="warp-cpu",
                         note=f"{count} points, warmed at r x 1.01", **common), ours, warmup=False)
@@ -621,6 +675,25 @@ def goals(b: Bench) -> list[dict]:
     worst = max(mem, key=lambda r: r.extra["bytes_per_V+E"], default=None)
     add("Memory O(V + E): peak Warp allocation of VNC-soft per (V + E)", "bounded, no V x E buffer",
         worst and worst.extra["bytes_per_V+E"], "bytes", None, worst and f"{worst.mesh} at {worst.tau_label}")
+    # issue 22
+    compared = [r for r in rows if r.status == "ok" and "vs_baseline" in r.extra]
+    slower = sorted((r for r in compared if r.extra["vs_baseline"] > SLOWER), key=lambda r: -r.extra["vs_baseline"])
+    add("Every row of the baseline run within 3 % or faster", f"<= {SLOWER}x baseline",
+        len(slower) if compared else None, f"rows slower (of {len(compared)} compared)",
+        None if not compared else not slower,
+        "; ".join(f"{r.mesh} {r.tau_label} {r.key} {r.extra['vs_baseline']:.3f}x" for r in slower[:12])
+        or b.baseline_note)
+    for goal, target, name, variant, limit in (
+            ("VNC-soft at positions= (a flow step) vs the mesh's own vertices, every mesh and scale", "<= 1.5x",
+             "vnc_soft", "positions", 1.5),
+            ("torch op VNC-soft forward + backward vs the Warp forward, every mesh and scale", "<= 3x",
+             "vnc_soft_fwd+bwd", "torch.autograd", 3.0),
+            ("VNC-hard vs VNC-soft, every mesh and scale", "<= 2x", "vnc_hard", "auto", 2.0)):
+        rs = [r for r in _ok(rows, section="operator", name=name, variant=variant) if r.ratio]
+        worst = max(rs, key=lambda r: r.ratio, default=None)
+        add(goal, target, worst and worst.ratio, "x", None if worst is None else worst.ratio <= limit,
+            worst and f"worst: {worst.mesh} at {worst.tau_label}; over the limit: " + (", ".join(
+                f"{r.mesh} {r.tau_label} {r.ratio:.2f}x" for r in rs if r.ratio > limit) or "none"))
     return out
 
 
@@ -643,6 +716,7 @@ def device_info(dev: wp.Device) -> dict:
 
 
 def write_outputs(b: Bench, command: str) -> dict:
+    compare_baseline(b)
     doc = {
         "schema": "vnc-warp-bench/1",
         "command": command,
@@ -651,7 +725,7 @@ def write_outputs(b: Bench, command: str) -> dict:
         "versions": versions(),
         "settings": {"sections": list(b.args.sections), "sizes": list(b.args.sizes), "quick": b.args.quick,
                      "max_minutes": b.args.max_minutes, "target_seconds_per_row": b.target_s,
-                     "max_repeats": b.max_repeats},
+                     "max_repeats": b.max_repeats, "baseline": b.baseline_note},
         "legend": {
             "timing": "median over repeats after one warm-up call; every call bracketed by device synchronisation; "
                       "inputs (vertex positions) resident on the device",
@@ -662,6 +736,8 @@ def write_outputs(b: Bench, command: str) -> dict:
             "variant": "traversal strategy of vnc_warp (auto picks grid or dense per call; 'chosen' says which) or "
                        "the baseline's implementation",
             "pairs_in_reach": "expected vertex-edge pairs within the cut-off, sum_k min(E, E pi tau^2 / area)",
+            "baseline_ms": "median of the same row in the baseline run (settings.baseline)",
+            "vs_baseline": "median / baseline_ms: above 1.03 the row got slower",
         },
         "meshes": list(b.meshes.values()),
         "rows": [asdict(r) for r in b.rows],
@@ -694,8 +770,9 @@ def markdown(doc: dict) -> str:
         m = "-" if g["measured"] is None else f"{g['measured']:.3g} {g['unit']}"
         met = {True: "yes", False: "**no**", None: "-"}[g["met"]]
         lines.append(f"| {g['goal']} | {g['target']} | {m} | {met} |")
-    lines += ["", "| mesh | V | scale | row | variant | median ms | IQR | vs package | notes |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    lines += ["", f"Baseline: {doc['settings'].get('baseline')}.", "",
+              "| mesh | V | scale | row | variant | median ms | IQR | vs package | baseline ms | vs baseline | notes |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     verts = {m["name"]: m["vertices"] for m in doc["meshes"]}
     for r in doc["rows"]:
         t = "-" if r["median_ms"] is None else f"{r['median_ms']:.3f}"
@@ -704,14 +781,20 @@ def markdown(doc: dict) -> str:
         note = r["note"] if r["status"] == "ok" else f"{r['status']}: {r['note']}"
         extra = ", ".join(f"{k}={_short(v)}" for k, v in r["extra"].items()
                           if k in ("chosen", "max_abs_dH", "max_rel_diff", "stages_done", "t_final", "peak_MB"))
+        base = r["extra"].get("baseline_ms")
+        vs = r["extra"].get("vs_baseline")
+        base = "" if base is None else f"{base:.3f}"
+        vs = "" if vs is None else f"{vs:.3f}" + (" **slower**" if vs > SLOWER else "")
         lines.append(f"| {r['mesh']} | {verts.get(r['mesh'], '')} | {r['tau_label']} | {r['name']} | {r['variant']} | "
-                     f"{t} | {iqr} | {ratio} | {'; '.join(s for s in (note, extra) if s)} |")
+                     f"{t} | {iqr} | {ratio} | {base} | {vs} | {'; '.join(s for s in (note, extra) if s)} |")
     return "\n".join(lines) + "\n"
 
 
 def print_tables(doc: dict) -> None:
     print(f"\n{doc['device']['name']} ({doc['device']['kind']}), {doc['date']}, {doc['elapsed_s']:.0f} s")
-    print(f"{'mesh':14s} {'scale':7s} {'row':26s} {'variant':13s} {'median ms':>10s} {'IQR':>6s} {'vs pkg':>9s}")
+    print(doc["settings"].get("baseline", ""))
+    print(f"{'mesh':14s} {'scale':7s} {'row':26s} {'variant':13s} {'median ms':>10s} {'IQR':>6s} {'vs pkg':>9s} "
+          f"{'before ms':>10s} {'vs before':>13s}")
     section = None
     for r in doc["rows"]:
         if r["section"] != section:
@@ -732,11 +815,13 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(prog="python -m bench.vnc", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0); default: Warp's preferred device")
-    p.add_argument("--out", default="bench/results/bench.json", help="JSON output (a .md copy of the tables beside it)")
+    p.add_argument("--out", default="bench/results/bench.json",
+                   help="JSON output (a .md copy of the tables beside it); a path not ending in .json is a folder, "
+                        "which gets bench.json and bench.md")
     p.add_argument("--quick", action="store_true", help="a small smoke run: 3k-vertex Spot, three scales, tiny flow")
     p.add_argument("--sizes", default=None,
-                   help=f"comma-separated sizes from {', '.join(SIZES)}; default: 50k,50k-koala,10k,200k,800k,15k on "
-                        f"CUDA, 10k on the CPU, 3k with --quick; every strategy and the PyTorch baseline run on "
+                   help=f"comma-separated sizes from {', '.join(SIZES)}; default: 50k,50k-koala,10k,200k,800k,15k,"
+                        f"30k-hammer on CUDA, 10k on the CPU, 3k with --quick; every strategy and the PyTorch baseline run on "
                         f"{', '.join(FULL_SIZES)}")
     p.add_argument("--sections", default=None,
                    help=f"comma-separated sections from {', '.join(SECTIONS)}; default: all (on the CPU without "
@@ -744,15 +829,22 @@ def parse_args(argv=None):
     p.add_argument("--max-minutes", type=float, default=None,
                    help="wall-clock budget; rows past it are reported as skipped (default 6 on CUDA, 30 on the CPU, "
                         "1 with --quick)")
-    p.add_argument("--meshes", type=Path, default=MESH_DIR, help="folder of the real meshes")
+    p.add_argument("--meshes", type=Path, default=MESH_DIR,
+                   help="folder of the real meshes (nefertiti.obj, koala.obj, spot.obj, armadillo.obj, hammer.obj)")
     p.add_argument("--trajectory-mesh", default="50k-koala", help="size whose mesh the trajectory starts from")
     p.add_argument("--trajectory-faces", type=int, default=50_000, help="face count of the remeshed flow states")
     p.add_argument("--stages", type=int, default=32, help="stages of the trajectory")
     p.add_argument("--verbose", action="store_true", help="print every row as it is measured")
+    p.add_argument("--baseline", default=str(BASELINE) if BASELINE.exists() else None,
+                   help="JSON of an earlier run whose rows each row is set beside (compared when it ran on a device "
+                        "of the same name); '' for none")
     args = p.parse_args(argv)
+    if not args.out.endswith(".json"):
+        args.out = str(Path(args.out) / "bench.json")
     device = get_device(args.device)
     if args.sizes is None:
-        args.sizes = "3k" if args.quick else ("50k,50k-koala,10k,200k,800k,15k" if device.is_cuda else "10k")
+        args.sizes = "3k" if args.quick else ("50k,50k-koala,10k,200k,800k,15k,30k-hammer" if device.is_cuda
+                                              else "10k")
     args.sizes = [s for s in args.sizes.split(",") if s]
     if args.sections is None:
         args.sections = ",".join(s for s in SECTIONS if device.is_cuda or args.quick or s != "trajectory")

@@ -25,7 +25,7 @@ import warp as wp
 import vnc_warp as vw
 from vnc_warp import figures
 from vnc_warp.flow import flow
-from vnc_warp.training.checkpoint import load_model
+from vnc_warp.training.model import load_model
 from vnc_warp.training.config import named_config
 from vnc_warp.training.data import build_dataset
 from vnc_warp.training.inference import decode_mesh, surface_condition

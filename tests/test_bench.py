@@ -33,7 +33,7 @@ def test_quick_run_writes_complete_json(quick_run):
     assert mesh["vertices"] > 1000 and mesh["interior_edges"] > mesh["vertices"]
     sections = {r["section"] for r in on_disk["rows"]}
     assert sections == {"operator", "scale", "eq1", "flow", "trajectory"}
-    assert len(on_disk["goals"]) == 7 and all({"goal", "target", "measured", "met"} <= set(g) for g in on_disk["goals"])
+    assert len(on_disk["goals"]) == 11 and all({"goal", "target", "measured", "met"} <= set(g) for g in on_disk["goals"])
     md = out.with_suffix(".md").read_text()
     assert on_disk["command"] in md and "| goal |" in md
 
@@ -103,25 +103,54 @@ def test_breakdown_runs_and_reports_every_operator(tmp_path):
     assert all(math.isfinite(r["wall_ms"]) and r["wall_ms"] > 0 and math.isfinite(r["host_ms"]) for r in doc["rows"])
 
 
-def test_tune_times_every_setting_and_restores_the_knobs(tmp_path):
-    """``python -m bench.tune`` on the CPU device times every setting of its grid per operator and scale, and leaves
-    the module-level knobs as it found them (no timing is asserted)."""
+def test_tune_times_every_setting(tmp_path):
+    """``python -m bench.tune`` on the CPU device times every setting of its grid per operator and scale, each a
+    ``Tuning`` passed to the operators (no timing is asserted), and changes no default."""
     from bench import tune
-    from vnc_warp import _pairs
-    from vnc_warp.kernels import vnc as _k
+    from vnc_warp.tuning import DEFAULT, Tuning
 
-    before = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,
-              _pairs.FINE_BITS, _pairs.BUSY_BALL_CELL, dict(_k.BALL_VARIANT))
     out = tmp_path / "tune.json"
-    assert tune.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--qb", "4", "--splits", "auto",
-                      "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf", "--tier", "1.5",
-                      "--ball-kernels", "unit", "half_chunks", "--repeats", "1", "--out", str(out)]) == 0
-    after = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,
-              _pairs.FINE_BITS, _pairs.BUSY_BALL_CELL, dict(_k.BALL_VARIANT))
-    assert after == before
+    assert tune.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--qb", "4",
+                      "--splits", "auto", "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf",
+                      "--ball-kernels", "chords", "chunks", "--set", "min_run=4", "--repeats", "1",
+                      "--out", str(out)]) == 0
+    assert DEFAULT == Tuning()
     doc = json.loads(out.read_text())
     soft = [r for r in doc["rows"] if r["op"] == "soft"]
     hard = [r for r in doc["rows"] if r["op"] == "hard"]
     assert len(soft) == 4 and len(hard) == 8  # 2 cells x 2 busy (x 2 ball kernels)
     assert all(math.isfinite(r["ms"]) and r["ms"] > 0 for r in doc["rows"])
-    assert {r["kernel"] for r in hard} == {"unit", "half_chunks"}
+    assert {r["kernel"] for r in hard} == {"chords", "chunks"} and {r["min_run"] for r in doc["rows"]} == {4}
+
+
+def test_counts_of_a_call(tmp_path):
+    """``python -m bench.counts`` on the CPU device counts what each call asks of the device: with graph replay (as on
+    CUDA) a call with ``positions=`` reads nothing back and launches one graph."""
+    from bench import counts
+
+    out = tmp_path / "counts.json"
+    assert counts.main(["--mesh", str(mesh_path("spot_lowres.obj")), "--out", str(out)]) == 0
+    calls = json.loads(out.read_text())["calls"]
+    assert calls["vnc_soft (positions=)"].get("read back", 0) == 0
+    assert calls["vnc_soft (positions=)"]["graph launch"] == 1 and "launch" not in calls["vnc_soft (positions=)"]
+    assert calls["torch vnc_soft forward + backward"]["graph launch"] == 2
+
+
+def test_out_folder_and_baseline_rows(tmp_path):
+    """``--out`` naming a folder writes ``bench.json`` there; each row is set beside the same row of ``--baseline``
+    (mesh, scale, name, variant) and a row more than 3 % slower is listed by the goal, a faster one is not."""
+    args = bench.parse_args(["--device", "cpu", "--quick", "--out", str(tmp_path / "res")])
+    assert args.out == str(tmp_path / "res" / "bench.json")
+    base = tmp_path / "base.json"
+    old = [{"mesh": "m", "tau_label": "2 l", "name": n, "variant": "auto", "median_ms": 10.0, "status": "ok"}
+           for n in ("slow", "fast")]
+    base.write_text(json.dumps({"device": {"name": "CPU"}, "date": "2026-11-21", "rows": old}))
+    args = bench.parse_args(["--device", "cpu", "--out", str(tmp_path / "res"), "--baseline", str(base)])
+    b = bench.Bench(args)
+    for name, ms in (("slow", 10.4), ("fast", 9.0)):
+        b.rows.append(bench.Row(section="operator", mesh="m", name=name, variant="auto", tau_label="2 l",
+                                median_ms=ms))
+    bench.compare_baseline(b)
+    assert [round(r.extra["vs_baseline"], 3) for r in b.rows] == [1.04, 0.9]
+    goal = next(g for g in bench.goals(b) if g["goal"].startswith("Every row of the baseline"))
+    assert goal["met"] is False and goal["measured"] == 1 and "slow[auto] 1.040x" in goal["detail"]

@@ -21,6 +21,9 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def _run(script: str, tmp_path: Path, *options: str) -> str:
     """Run ``examples/<script>`` on the CPU with ``options``; its stdout (the run must succeed)."""
     env = dict(os.environ, OMP_NUM_THREADS="1")  # tiny torch models: more threads only oversubscribe a small CPU
+    # the checkout's package, whatever an installed one is (as pytest's own pythonpath does for the tests)
+    env["PYTHONPATH"] = os.pathsep.join([str(EXAMPLES.parent)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+                                                                  if p])
     cmd = [sys.executable, str(EXAMPLES / script), "--device", "cpu", "--out", str(tmp_path / "out.png"), *options]
     proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"{script} failed:\n{proc.stdout}\n{proc.stderr}"

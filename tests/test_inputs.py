@@ -17,7 +17,8 @@ from conftest import mesh_path
 
 import vnc_warp as vw
 import vnc_warp.torch as vt
-from vnc_warp.operators import DegenerateResultWarning, _warned
+from vnc_warp._checks import _warned
+from vnc_warp.operators import DegenerateResultWarning
 
 
 @pytest.fixture(scope="module")

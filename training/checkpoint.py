@@ -31,7 +31,7 @@ import torch.nn as nn
 
 from .config import TrainConfig
 
-__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "load_model", "rng_state", "set_rng_state",
+__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "rng_state", "set_rng_state",
            "unwrap"]
 
 FORMAT = "vnc-warp-checkpoint"
@@ -160,25 +160,3 @@ def _torch_reason(exc: BaseException) -> str:
 
 
 _ADVICE = re.compile(r"weights.only|torch\.load|file an issue|documentation|trusted source|likely succeed", re.I)
-
-
-def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> tuple[nn.Module, TrainConfig]:
-    """The model of a checkpoint, in eval mode on ``device``, and its configuration.
-
-    Raises:
-        FileNotFoundError, CheckpointError: see :func:`load_checkpoint`; CheckpointError also when the
-            weights do not fit the stored configuration.
-    """
-    from .model import build_model
-
-    state = load_checkpoint(path)
-    try:
-        config = TrainConfig.from_dict(state["config"])
-    except ValueError as exc:
-        raise CheckpointError(f"{path}: stored config is invalid ({exc})") from exc
-    model = build_model(config.model, load_pretrained=False)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"{path}: weights do not match the stored model config ({exc})") from exc
-    return model.to(device).eval(), config

@@ -925,7 +925,7 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
         return _step_summary(2, results, clock, log)
 
     # step 3: generation
-    from .checkpoint import load_model
+    from .model import load_model
 
     models = {kind: load_model(runs / kind, device=torch_device) for kind in training}
     for kind, (model, _) in models.items():

@@ -17,7 +17,7 @@ import torch
 
 from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
 
-from .checkpoint import load_model
+from .model import load_model
 from .train import resolve_device
 
 __all__ = ["surface_condition", "sdf_grid_tensor", "decode_sdf_grid", "extract_mesh", "decode_mesh", "write_predictions", "predict_times",

@@ -27,13 +27,15 @@ from __future__ import annotations
 import abc
 import copy
 import math
+import os
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from .config import ModelConfig
+from .checkpoint import CheckpointError, load_checkpoint
+from .config import ModelConfig, TrainConfig
 
 __all__ = [
     "farthest_point_sample",
@@ -53,6 +55,7 @@ __all__ = [
     "CVAE1",
     "CVAE2",
     "build_model",
+    "load_model",
 ]
 
 
@@ -685,8 +688,6 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         if not config.pretrained:
             raise ValueError("C-VAE-II needs model.pretrained: the checkpoint of a plain VecSet VAE "
                              "(train one with the 'vae' or 'tiny-vae' config)")
-        from .checkpoint import CheckpointError, load_checkpoint
-
         ckpt = load_checkpoint(config.pretrained)
         pre = ckpt["config"]["model"]
         if pre.get("kind") != "vae":
@@ -701,3 +702,23 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         base.load_state_dict(ckpt["model"])
     return CVAE2(base=base, time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
                  time_scale=config.time_scale, modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)
+
+
+def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> tuple[nn.Module, TrainConfig]:
+    """The model of a checkpoint, in eval mode on ``device``, and its configuration.
+
+    Raises:
+        FileNotFoundError, CheckpointError: see :func:`load_checkpoint`; CheckpointError also when the
+            weights do not fit the stored configuration.
+    """
+    state = load_checkpoint(path)
+    try:
+        config = TrainConfig.from_dict(state["config"])
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: stored config is invalid ({exc})") from exc
+    model = build_model(config.model, load_pretrained=False)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{path}: weights do not match the stored model config ({exc})") from exc
+    return model.to(device).eval(), config

@@ -61,6 +61,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 from tqdm.auto import tqdm
 
+from vnc_warp._device import torch_device as resolve_device  # the library's one torch device resolver
 from vnc_warp._files import output_dir, write_bytes
 
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, unwrap
@@ -88,26 +89,6 @@ class TrainingError(ValueError):
 
 class TrainingInterrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM ended the run after a checkpoint was written; the message names the step and file."""
-
-
-def resolve_device(device: str | torch.device | None = None, *, local_rank: int | None = None) -> torch.device:
-    """A torch device: None picks CUDA when present; ``"cuda"`` becomes ``cuda:<local_rank>`` under torchrun.
-
-    Raises:
-        ValueError: malformed name, or CUDA requested where there is none.
-    """
-    if device is None:
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise ValueError(f"unknown device {device!r}: {exc}") from exc
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(f"device {device!r} requested but CUDA is not available to torch")
-        if dev.index is None:
-            dev = torch.device("cuda", local_rank or 0)
-    return dev
 
 
 class Stage0Input(Dataset):

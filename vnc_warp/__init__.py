@@ -36,6 +36,8 @@ def _source_checkout() -> None:
 _source_checkout()
 
 from .mesh import EdgeTopology, Mesh, MeshError, MeshInput, from_arrays, load_mesh, mesh_input
+from .tuning import Tuning
+from ._engine import Engine, engine
 from .operators import DegenerateResultWarning, edge_fields, integrated_mean_curvature, vnc_hard, vnc_soft
 from .scale import ScaleCurve, adaptive_scale, default_scales, scale_curve, vnc_auc
 from .shapes import icosphere, random_shape, shape_family

@@ -1,4 +1,5 @@
-"""Device selection shared by every entry point: ``None`` means Warp's preferred device (CUDA if present)."""
+"""Device selection shared by every entry point: :func:`get_device` for Warp, :func:`torch_device` for torch, from
+the same names (``None``, ``"cpu"``, ``"cuda"``, ``"cuda:1"``, a ``wp.Device`` or a ``torch.device``)."""
 
 from __future__ import annotations
 
@@ -67,3 +68,28 @@ def get_device(device=None) -> wp.Device:
         return wp.get_device(device)
     except Exception as exc:
         raise ValueError(f"unknown or unavailable device {device!r}: {exc}") from exc
+
+
+def torch_device(device=None, *, local_rank: int | None = None):
+    """Resolve ``device`` for torch: None picks CUDA when torch has it, else the CPU; ``"cuda"`` becomes
+    ``cuda:<local_rank>`` (0 by default; the rank of a ``torchrun`` process); a ``wp.Device`` its torch twin.
+
+    Raises:
+        ValueError: a malformed name, or CUDA asked for where torch has none.
+    """
+    import torch
+
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if isinstance(device, wp.Device):
+        device = device.alias
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"unknown device {device!r}: {exc}") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {device!r} requested but CUDA is not available to torch")
+        if dev.index is None:
+            dev = torch.device("cuda", local_rank or 0)
+    return dev

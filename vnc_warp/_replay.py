@@ -1,19 +1,17 @@
-"""Graph replay of repeated operator calls: the second identical call captures, every later one replays.
+"""Graph replay of an engine's repeated calls: the second identical call takes scratch of its own, the third captures,
+every later one replays.
 
-A call of :func:`~vnc_warp.vnc_soft`, :func:`~vnc_warp.vnc_hard` or :func:`~vnc_warp.integrated_mean_curvature`
-(at the vertices) on a mesh's own vertices, with scales given on the host, launches the same kernels with the same
-arguments every time: nothing in it is read back from the device (the bounds come from the host, see
-``operators._host_bounds``). Such a call is identified by a key (operator, scales, kappa, strategy). The first call
-with a key runs as usual; the second runs with scratch that belongs to the mesh (allocated there, outside any
-capture, so that no graph owns it); the third captures its launches into a graph (``wp.ScopedCapture``) over that
-scratch; that call and every later one replay the graph (one launch) and copy the results into fresh arrays, so a call costs the device time and tens of microseconds of host time instead of about a millisecond of
-Python and launch overhead.
+A call whose launches depend only on its key (operator, scales, kappa, strategy, and for positions given on the device
+the plan they were made with) and on arrays the engine owns reads nothing back from the device. The first call with a
+key runs as usual; the second runs with scratch that belongs to the table (allocated there, outside any capture, so
+that no graph owns it); the third captures its launches into a graph (``wp.ScopedCapture``) over that scratch; that
+call and every later one replay the graph (one launch), and the caller copies the results out. A call then costs the
+device time and tens of microseconds of host time instead of about a millisecond of Python and launch overhead.
 
-The graphs live with the mesh (``mesh._cache``, dropped when ``mesh.vertices`` is replaced) and at most
-:data:`MAX_GRAPHS` per mesh, device and stream are kept (least recently used first out). Calls made while the device
-is already capturing (a user's own graph) never replay. :data:`DEVICES` says on which kinds of device replay is used:
-CUDA only by default (on the CPU, kernel time dominates); the tests turn it on for the CPU device too, where Warp
-records graphs as well.
+Each :class:`~vnc_warp._engine.Engine` holds one :class:`Replay` per stream, keeping at most ``max_graphs`` graphs
+(least recently used first out). Calls made while the device is already capturing (a user's own graph) never replay.
+Which device kinds replay is the engine's :class:`~vnc_warp.tuning.Tuning` (``replay``), by default the process-wide
+setting of :func:`set_graph_replay`: CUDA only (on the CPU, kernel time dominates).
 """
 
 from __future__ import annotations
@@ -22,101 +20,95 @@ from collections import OrderedDict
 
 import warp as wp
 
-from ._pairs import Pool
+from ._plan import Pool
 
-__all__ = ["DEVICES", "MAX_GRAPHS", "call", "forget", "set_graph_replay"]
+__all__ = ["set_graph_replay", "Replay"]
 
-# device kinds ("cuda", "cpu") whose repeated calls are replayed
-DEVICES = {"cuda"}
-# captured graphs kept per mesh, device and stream
-MAX_GRAPHS = 8
+# device kinds ("cuda", "cpu") whose repeated calls are replayed, for engines whose tuning does not say
+_DEVICES = {"cuda"}
 
 _SEEN = "seen"  # a key called once: the next call allocates the graph's scratch
 _WARM = "warm"  # a key whose scratch exists: the next call captures
 _PLAIN = "plain"  # a key whose capture failed: always run as usual
 
 
-class _Graphs:
-    """The replay table of one mesh, device and stream: key -> state, and the scratch the graphs share."""
-
-    def __init__(self):
-        self.entries: OrderedDict = OrderedDict()
-        self.store: dict = {}
-
-
-def _table(mesh, device: wp.Device) -> _Graphs:
-    stream = device.stream.cuda_stream if device.is_cuda else 0
-    return mesh._memo(("replays", device.alias, stream), _Graphs)
-
-
 def set_graph_replay(*kinds: str) -> set:
     """The device kinds (``"cuda"``, ``"cpu"``) whose repeated operator calls are replayed from captured graphs
-    (default: ``"cuda"``); no argument turns replay off. Returns the previous set. Graphs already captured stay with
-    their meshes (:func:`forget` drops them).
+    (default: ``"cuda"``), for every engine whose :class:`~vnc_warp.tuning.Tuning` leaves ``replay`` unset; no
+    argument turns replay off. Returns the previous set.
 
     >>> old = vnc_warp.set_graph_replay()          # every call launched as usual
     >>> vnc_warp.set_graph_replay(*old)            # back
     """
-    global DEVICES
+    global _DEVICES
     bad = set(kinds) - {"cuda", "cpu"}
     if bad:
         raise ValueError(f"device kinds are 'cuda' and 'cpu', got {sorted(bad)}")
-    old, DEVICES = DEVICES, set(kinds)
+    old, _DEVICES = _DEVICES, set(kinds)
     return old
 
 
-def forget(mesh) -> None:
-    """Drop every graph kept for ``mesh`` (e.g. after changing a module-level setting that the keys do not hold)."""
-    for key in [k for k in mesh._cache if isinstance(k, tuple) and k and k[0] == "replays"]:
-        del mesh._cache[key]
+def replayed_kinds(replay: tuple[str, ...] | None) -> set:
+    """The device kinds that replay for a tuning's ``replay`` setting."""
+    return set(_DEVICES) if replay is None else set(replay)
 
 
-def enabled(device: wp.Device) -> bool:
-    return ("cuda" if device.is_cuda else "cpu") in DEVICES and not device.is_capturing
+class Replay:
+    """The graphs of one engine on one stream: key -> state, and the scratch the graphs share."""
 
+    def __init__(self, device: wp.Device, max_graphs: int):
+        self.device, self.max_graphs = device, max_graphs
+        self.entries: OrderedDict = OrderedDict()
+        self.store: dict = {}
 
-def call(mesh, device: wp.Device, key: tuple, kind: str, run) -> list:
-    """The outputs of ``run(pool, fresh)`` for the call ``key`` on ``mesh``, replayed from a graph when possible.
+    def graphs(self) -> list:
+        """The keys whose graph is captured."""
+        return [k for k, v in self.entries.items() if isinstance(v, tuple)]
 
-    ``run`` enqueues the call's launches (no read from the device) taking scratch from ``pool`` and returns its
-    output arrays: new arrays when ``fresh``, else from ``pool`` too (the graph's outputs, copied out per replay).
-    """
-    if not enabled(device):
-        return run(Pool(device, kind), True)
-    table = _table(mesh, device)
-    state = table.entries.get(key)
-    if state is None or state == _PLAIN:
-        if state is None:
-            table.entries[key] = _SEEN
-            _trim(table)
-        return run(Pool(device, kind), True)
-    if state == _SEEN:
-        # the scratch of the graph is allocated here, outside any capture: memory allocated while capturing would
-        # belong to that graph, and the graphs of a mesh share their scratch (a graph dropped later must not take it)
-        table.entries[key] = _WARM
-        outs = run(Pool(device, kind, store=table.store, limit=None), False)
-        return [wp.clone(o) for o in outs]
-    if state == _WARM:
-        pool = Pool(device, kind, store=table.store, limit=None)
-        try:
-            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-                outs = run(pool, False)
-        except Exception:  # a launch that cannot be captured: this key runs as usual from now on
-            table.entries[key] = _PLAIN
-            return run(Pool(device, kind), True)
-        state = (capture.graph, outs)
-        table.entries[key] = state
-        table.entries.move_to_end(key)
-        _trim(table)
-    table.entries.move_to_end(key)
-    graph, outs = state
-    wp.capture_launch(graph)
-    return [wp.clone(o) for o in outs]
+    def drop(self, match) -> None:
+        """Forget every key for which ``match(key)`` holds (their graphs too)."""
+        for k in [k for k in self.entries if match(k)]:
+            del self.entries[k]
 
+    def call(self, key: tuple, kind: str, run, plain: Pool) -> tuple[list, bool]:
+        """``(outputs, fresh)`` of ``run(pool, fresh)`` for the call ``key``, replayed from a graph when possible.
 
-def _trim(table: _Graphs) -> None:
-    graphs = [k for k, v in table.entries.items() if isinstance(v, tuple)]
-    while len(graphs) > MAX_GRAPHS:
-        del table.entries[graphs.pop(0)]
-    while len(table.entries) > 4 * MAX_GRAPHS:
-        table.entries.popitem(last=False)
+        ``run`` enqueues the call's launches (no read from the device) taking scratch from ``pool`` and returns its
+        output arrays: new arrays when ``fresh``, else from ``pool`` too (the graph's outputs, which the caller copies
+        out before the next call with the same key). ``plain``: the pool of a call run as usual.
+        """
+        state = self.entries.get(key)
+        if state is None or state == _PLAIN:
+            if state is None:
+                self.entries[key] = _SEEN
+                self._trim()
+            return run(plain, True), True
+        if state == _SEEN:
+            # the scratch of the graph is allocated here, outside any capture: memory allocated while capturing would
+            # belong to that graph, and the graphs of an engine share their scratch (a graph dropped later must not
+            # take it)
+            self.entries[key] = _WARM
+            return run(Pool(self.device, kind, self.store, None), False), False
+        if state == _WARM:
+            pool = Pool(self.device, kind, self.store, None)
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    outs = run(pool, False)
+            except Exception:  # a launch that cannot be captured: this key runs as usual from now on
+                self.entries[key] = _PLAIN
+                return run(plain, True), True
+            state = (capture.graph, outs)
+            self.entries[key] = state
+            self.entries.move_to_end(key)
+            self._trim()
+        self.entries.move_to_end(key)
+        graph, outs = state
+        wp.capture_launch(graph)
+        return outs, False
+
+    def _trim(self) -> None:
+        graphs = self.graphs()
+        while len(graphs) > self.max_graphs:
+            del self.entries[graphs.pop(0)]
+        while len(self.entries) > 4 * self.max_graphs:
+            self.entries.popitem(last=False)

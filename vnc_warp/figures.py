@@ -33,6 +33,7 @@ import numpy as np
 
 from .mesh import Mesh
 from . import plot
+from .stats import pca, pearson
 from .render import Camera, _as_rgb8, _font, _host, _text_size, colorbar, render_mesh, save_png
 
 __all__ = [
@@ -747,8 +748,6 @@ def latent_space(
     Raises:
         ValueError: fewer than 3 samples or shapes that do not match.
     """
-    from .stats import pca, pearson
-
     z = np.asarray(_host(latents), np.float64)
     tt = np.asarray(_host(t), np.float64).reshape(-1)
     if z.ndim == 2:

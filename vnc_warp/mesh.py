@@ -103,9 +103,10 @@ def _build_topology(faces: np.ndarray, vertices: np.ndarray | None = None) -> tu
     return EdgeTopology(uniq.astype(np.int32), interior, boundary), inconsistent
 
 
-@dataclass
+@dataclass(eq=False)
 class Mesh:
-    """A checked triangle mesh.
+    """A checked triangle mesh: the data every operator reads (they keep their own state in the mesh's
+    :class:`~vnc_warp.Engine`). Two meshes are equal only when they are the same object.
 
     Attributes:
         vertices: (V, 3) float32 positions, in the mesh's own units.
@@ -125,7 +126,7 @@ class Mesh:
     name: str = "mesh"
     source_index: np.ndarray | None = field(default=None, repr=False)
     origin: np.ndarray | None = field(default=None, repr=False)
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    _derived: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
         if self.origin is None:
@@ -145,37 +146,32 @@ class Mesh:
         """True when every edge has exactly two faces."""
         return self.topology.boundary.shape[0] == 0
 
-    def _memo(self, name: str, compute):
+    def _derive(self, name: str, compute):
         """``compute()`` once per vertex array: kept while ``self.vertices`` is the same array object (the arrays
         of a Mesh are treated as immutable; assigning a new array recomputes)."""
-        hit = self._cache.get(name)
+        hit = self._derived.get(name)
         if hit is None or hit[0] is not self.vertices:
             hit = (self.vertices, compute())
-            self._cache[name] = hit
+            self._derived[name] = hit
         return hit[1]
-
-    def _kept(self, name: str):
-        """What ``_memo(name, ...)`` keeps for the current vertex array, or None (nothing computed)."""
-        hit = self._cache.get(name)
-        return hit[1] if hit is not None and hit[0] is self.vertices else None
 
     @property
     def local_vertices(self) -> np.ndarray:
         """(V, 3) float32 positions relative to :attr:`origin`: what the operators compute on, so that a mesh far
         from the coordinate origin (a scan in survey coordinates, a part at 1e6 units) loses no precision. Taken
         from the input's float64 coordinates when the mesh was built from them (:func:`from_arrays`)."""
-        return self._memo("local_vertices", lambda: (self.vertices.astype(np.float64) - self.origin).astype(np.float32))
+        return self._derive("local_vertices", lambda: (self.vertices.astype(np.float64) - self.origin).astype(np.float32))
 
     @property
     def mean_edge_length(self) -> float:
         e = self.topology.edges
-        return self._memo("mean_edge_length", lambda: float(np.linalg.norm(
+        return self._derive("mean_edge_length", lambda: float(np.linalg.norm(
             self.local_vertices[e[:, 0]].astype(np.float64) - self.local_vertices[e[:, 1]], axis=1).mean()))
 
     @property
     def bbox_diagonal(self) -> float:
         v = self.local_vertices
-        return self._memo("bbox_diagonal",
+        return self._derive("bbox_diagonal",
                           lambda: float(np.linalg.norm(v.max(0).astype(np.float64) - v.min(0))))
 
     def area(self) -> float:
@@ -221,7 +217,7 @@ def _mesh(v64: np.ndarray, faces: np.ndarray, topology: EdgeTopology, name: str,
     origin = 0.5 * (v64.min(0) + v64.max(0))
     vertices = np.ascontiguousarray(v64, dtype=np.float32)
     mesh = Mesh(vertices, faces, topology, name, source_index, origin)
-    mesh._cache["local_vertices"] = (vertices, np.ascontiguousarray(v64 - origin, dtype=np.float32))
+    mesh._derived["local_vertices"] = (vertices, np.ascontiguousarray(v64 - origin, dtype=np.float32))
     return mesh
 
 

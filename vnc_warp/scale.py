@@ -8,19 +8,18 @@ arrays per input vertex for a trimesh, ``(V, F)`` pair or path, torch tensors fo
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import warp as wp
 
-from vnc_warp.kernels import vnc as _k
+from vnc_warp.kernels import vnc_scale as _ks
 
-from . import _pairs
-from ._device import get_device
+from ._checks import degenerate_reason, mesh_only, warn_once
 from .mesh import Mesh, MeshInput, mesh_input
-from .operators import (_ball_sources, _check_values, _degenerate_reason, _edge_fields, _host_bounds, _midpoint_bvh,
-                        _mesh_only, _positions, _segment_bvh, _soft_sources, _warn_once)
+from ._engine import engine_of
+from .tuning import Tuning
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -89,7 +88,7 @@ def _check_taus(taus) -> np.ndarray:
 
 
 def scale_curve(mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None,
-                positions: wp.array | None = None, strategy: str = "auto") -> ScaleCurve:
+                positions: wp.array | None = None, strategy: str = "auto", tuning: Tuning | None = None) -> ScaleCurve:
     """VNC-Scale curves ``C(v_k) = H(v_k, tau)`` at every scale, in one neighbour traversal.
 
     Each traversal visits the pairs within the largest scale once and adds every pair to all the scales that
@@ -103,26 +102,28 @@ def scale_curve(mesh, taus=None, variant: str = "soft", *, kappa: float | None =
         device: Warp device (defaults to ``positions.device`` when positions are given, a tensor's device, or the
             preferred device).
         positions: (V,) vec3 ``wp.array`` overriding a :class:`~vnc_warp.Mesh`'s vertices (e.g. a flow iterate on
-            the GPU).
+            the GPU): planned once and replayed while only the positions move.
         strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_warp.vnc_soft`); "auto" decides per
             traversal from its largest scale.
+        tuning: the engine's knobs (:class:`~vnc_warp.tuning.Tuning`).
 
     Returns:
         A :class:`ScaleCurve` with ``H`` of shape (S, V) (Warp, for a Mesh) or (S, V_in) (NumPy or torch) and the
         global mean curve.
     """
     src = mesh_input(mesh)
-    _mesh_only(src, "scale_curve", positions=positions)
-    if device is None and positions is None:
-        device = src.device
-    curve = _scale_curve(src.mesh, taus, variant, kappa=kappa, device=device, positions=positions,
-                         strategy=strategy)
+    mesh_only(src, "scale_curve", positions=positions)
+    if variant not in ("soft", "hard"):
+        raise ValueError(f"variant must be 'soft' or 'hard', got {variant!r}")
+    t = _check_taus(default_scales(src.mesh) if taus is None else taus)
+    H, mean = engine_of(src, device, positions, tuning).scale_curve(t, variant, kappa=kappa, positions=positions,
+                                                                  strategy=strategy)
+    curve = ScaleCurve(t, H, mean, variant)
     if positions is None:
         _warn_zero_rows(src, curve, kappa)
     if src.kind == "warp":
         return curve
-    return ScaleCurve(curve.taus, src.per_vertex(curve.H, axis=1), src.per_point(curve.mean), variant, curve.H,
-                      curve.mean, src)
+    return ScaleCurve(curve.taus, src.per_vertex(H, axis=1), src.per_point(mean), variant, H, mean, src)
 
 
 def _warn_zero_rows(src: MeshInput, curve: ScaleCurve, kappa) -> None:
@@ -135,99 +136,11 @@ def _warn_zero_rows(src: MeshInput, curve: ScaleCurve, kappa) -> None:
     if not zero.any() or zero.all():  # all zero: a flat surface, no degenerate scale
         return
     rows = np.nonzero(zero)[0]
-    reason = _degenerate_reason(src.mesh, float(curve.taus[rows[-1]]), kappa, soft=curve.variant == "soft")
+    reason = degenerate_reason(src.mesh, float(curve.taus[rows[-1]]), kappa, soft=curve.variant == "soft")
     if reason is not None:
         listed = ", ".join(map(str, rows[:6])) + (", ..." if rows.size > 6 else "")
-        _warn_once("scale_curve", reason[0], f"scale_curve on {src.mesh.name}: {rows.size} of {zero.size} scales "
-                                             f"(taus[{listed}]) gave H = 0 at every vertex: {reason[1]}")
-
-
-def _scale_curve(mesh: Mesh, taus, variant: str, *, kappa, device, positions, strategy: str) -> ScaleCurve:
-    """:func:`scale_curve` on a :class:`Mesh`: Warp arrays per mesh vertex."""
-    device = positions.device if positions is not None else get_device(device)
-    t = _check_taus(default_scales(mesh) if taus is None else taus)
-    if variant not in ("soft", "hard"):
-        raise ValueError(f"variant must be 'soft' or 'hard', got {variant!r}")
-    if variant == "soft" and not (kappa is not None and kappa > 0):
-        raise ValueError(f"VNC-soft needs a positive kappa, got {kappa}")
-    if variant == "hard" and kappa is not None and not kappa > 0:
-        raise ValueError(f"kappa must be positive or None, got {kappa}")
-    _pairs.check_strategy(strategy)
-    S, V = t.size, mesh.num_vertices
-    x = _positions(mesh, positions, device)
-    pool = _pairs.Pool(device, f"scale_curve/{variant}")
-    f = _edge_fields(mesh, x, pool=pool)
-    taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
-    H = wp.empty((S, V), dtype=wp.float32, device=device)
-    if strategy == "bvh":
-        _check_values(mesh, x, taus_wp)
-        _scale_curve_bvh(x, f, taus_wp, variant, kappa, H)
-    else:
-        _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool)
-    mean = wp.zeros(S, dtype=wp.float32, device=device)
-    stride = min(V, 256)
-    wp.launch(_k.column_mean, dim=(S, stride), inputs=[H, stride, 1.0 / V], outputs=[mean], device=device)
-    return ScaleCurve(t, H, mean, variant)
-
-
-def _scale_curve_bvh(x, f, taus_wp, variant, kappa, H):
-    device = x.device
-    S, V = H.shape
-    num = wp.zeros((S, V), dtype=wp.float32, device=device)
-    den = wp.zeros((S, V), dtype=wp.float32, device=device)
-    if variant == "soft":
-        bvh = _midpoint_bvh(f)
-        wp.launch(_k.soft_multiscale, dim=V, inputs=[x, taus_wp, float(kappa), bvh.id, f.mid, f.length, f.angle],
-                  outputs=[num, den], device=device)
-    else:
-        bvh = _segment_bvh(x, f)
-        k = 1.0e-6 if kappa is None else float(kappa)  # sigma = tau / 1e-6: w = 1 to float precision
-        wp.launch(_k.ball_multiscale, dim=V, inputs=[x, taus_wp, k, bvh.id, x, f.edges, f.mid, f.angle],
-                  outputs=[num, den], device=device)
-    wp.launch(_k.ratio2d, dim=(S, V), inputs=[num, den], outputs=[H], device=device)
-
-
-def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool):
-    device = x.device
-    S, V = H.shape
-    E = f.mid.shape[0]
-    soft = variant == "soft"
-    b = _host_bounds(mesh, x, (float(t[-1]), float(t[-1])), lengths=not soft) or _pairs.bounds(
-        x, wp.full(V, np.float32(t[-1]), dtype=wp.float32, device=device), None if soft else f.length)
-    pad = 0.0 if soft else 0.5 * b.lmax
-    k = 0.0 if kappa is None else float(kappa)  # kappa = 0: unweighted scales
-    # 32 sums per scale chunk and thread: fewer splits than a single-scale traversal
-    splits = min(_pairs.launch_shape(device, V)[1], 4)
-    for offset in range(0, S, 16):
-        tmax = float(t[min(offset + 16, S) - 1])
-        concrete = _pairs.resolve(strategy, device, b, tmax + pad, V, E)
-        radius = pool.empty(V, wp.float32)
-        radius.fill_(np.float32(tmax))
-        chunk = replace(b, rmax=tmax, rmean=tmax)
-        if soft:
-            plans = [_pairs.plan(x, radius, f.mid, chunk, concrete, tmax, splits=splits, cache=mesh._cache, pool=pool)]
-        else:
-            plans = _pairs.ball_plans(x, radius, f.mid, f.length, chunk, concrete, splits=splits, cache=mesh._cache,
-                                      pool=pool)
-        groups = plans[0][1]
-        rows = 16 * len(plans) * groups.splits
-        part_num = pool.empty((rows, groups.padded), wp.float32)
-        part_den = pool.empty((rows, groups.padded), wp.float32)
-        if not soft:  # every traversal reads the edges in one sorted order (ball_plans)
-            seg_m, seg_h, val = _ball_sources(plans[0][0], x, f, device, pool)
-        for i, (cells, grp) in enumerate(plans):
-            if soft:
-                pos, val = _soft_sources(cells, f, device, pool)
-                wp.launch(_k.soft_cells_multiscale, dim=grp.dim,
-                          inputs=[x, taus_wp, offset, k, *grp.args(cells), pos, val],
-                          outputs=[part_num, part_den], device=device)
-            else:
-                wp.launch(_k.ball_cells_multiscale, dim=grp.dim,
-                          inputs=[x, taus_wp, offset, k, *grp.args(cells), seg_m, seg_h, val, grp.splits,
-                                  i * grp.splits],
-                          outputs=[part_num, part_den], device=device)
-        wp.launch(_k.reduce_multiscale, dim=(min(16, S - offset), V), inputs=[groups.order, part_num, part_den, offset],
-                  outputs=[H], device=device)
+        warn_once("scale_curve", reason[0], f"scale_curve on {src.mesh.name}: {rows.size} of {zero.size} scales "
+                                            f"(taus[{listed}]) gave H = 0 at every vertex: {reason[1]}")
 
 
 def _curve_taus(curve: ScaleCurve, taus) -> wp.array:
@@ -246,7 +159,7 @@ def vnc_auc(curve: ScaleCurve, taus=None) -> wp.array:
     """
     V = curve._H.shape[1]
     out = wp.empty(V, dtype=wp.float32, device=curve.device)
-    wp.launch(_k.scale_auc, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus)], outputs=[out],
+    wp.launch(_ks.scale_auc, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus)], outputs=[out],
               device=curve.device)
     return curve._result(out)
 
@@ -262,6 +175,6 @@ def adaptive_scale(curve: ScaleCurve, taus=None, phi: float = 0.0) -> wp.array:
         raise ValueError(f"phi must be finite and non-negative, got {phi}")
     V = curve._H.shape[1]
     out = wp.empty(V, dtype=wp.float32, device=curve.device)
-    wp.launch(_k.adaptive_scale, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus), float(phi)],
+    wp.launch(_ks.adaptive_scale, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus), float(phi)],
               outputs=[out], device=curve.device)
     return curve._result(out)

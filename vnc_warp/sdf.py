@@ -17,6 +17,7 @@ the same mesh do not rebuild it; treat a Mesh as immutable once queried (use ``w
 from __future__ import annotations
 
 import sys
+import weakref
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,8 @@ from vnc_warp.mesh import Mesh, load_mesh
 __all__ = ["signed_distance", "sdf_grid"]
 
 _SIGNS = ("winding", "normal")
+# the wp.Mesh of each Mesh, per device, kept while the Mesh lives
+_WP_MESHES: "weakref.WeakKeyDictionary[Mesh, dict]" = weakref.WeakKeyDictionary()
 # "no bound" for the closest-point search; its square stays finite in float32
 _UNBOUNDED = 1.0e18
 # coarse-to-fine factors tried for the narrow-band grid
@@ -53,8 +56,8 @@ def warp_mesh(mesh: Mesh, device: wp.context.Device, *, winding: bool) -> wp.Mes
     Returns:
         A ``wp.Mesh``; a winding-enabled one also serves ``sign="normal"`` queries.
     """
-    cache = mesh._cache
-    key = ("vnc_warp.sdf.wp_mesh", device.alias)
+    cache = _WP_MESHES.setdefault(mesh, {})
+    key = device.alias
     found = cache.get(key)
     if found is not None and (found.support_winding_number or not winding):
         return found

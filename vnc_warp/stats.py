@@ -1,10 +1,14 @@
-"""Small statistics shared by the figures and the latent-space analysis: Pearson correlation and PCA."""
+"""Small statistics that the figures and the training reports share: Pearson's r and a PCA by SVD.
+
+They live in the library, below both: :mod:`vnc_warp.figures` (Fig. 11) imports them, and so may
+``vnc_warp.training``; nothing here imports either.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["pearson", "pca"]
+__all__ = ["pca", "pearson"]
 
 
 def _numpy(x) -> np.ndarray:

@@ -1,10 +1,15 @@
-"""VNC-soft as a PyTorch op: Eq. (3) with gradients w.r.t. vertex positions.
+"""VNC-soft and VNC-hard as PyTorch ops: Eqs. (3) and (2) with gradients with respect to the vertex positions.
 
-``vnc_soft(verts, mesh, tau)`` checks its inputs and calls a private ``torch.autograd.Function`` whose
-forward runs the Warp kernels on the tensor's device (CPU or CUDA, zero-copy through ``wp.from_torch``)
-under a ``wp.Tape``, and whose backward replays that tape. It answers per row of ``verts``, exactly as
-:func:`vnc_warp.vnc_soft` answers per vertex of a trimesh or a file: vertices at one position (texture seams)
-are merged into one vertex of the surface and every row gets its vertex's value.
+``vnc_soft(verts, mesh, tau)`` and ``vnc_hard(verts, mesh, tau)`` check their inputs and call a private
+``torch.autograd.Function`` that runs the Warp kernels on the tensor's device (CPU or CUDA, zero-copy through
+``wp.from_torch``) on the :class:`~vnc_warp.Engine` of the mesh. They answer per row of ``verts``, exactly as
+:func:`vnc_warp.vnc_soft` answers per vertex of a trimesh or a file: vertices at one position (texture seams) are
+merged into one vertex of the surface and every row gets its vertex's value.
+
+VNC-soft goes through the engine's plan for positions on the device: forward and backward are each replayed from a
+captured graph once the shapes repeat, and read nothing back (on CUDA, invalid positions are caught by the engine's
+check on the device: see :mod:`vnc_warp._engine`). VNC-hard reads the bounds of its edges each call (their pieces
+depend on the edge lengths) and differentiates every chord with respect to the ball's centre and the edge's ends.
 """
 
 from __future__ import annotations
@@ -13,36 +18,52 @@ import numpy as np
 import torch
 import warp as wp
 
+from ._checks import warn_if_degenerate
 from ._device import get_device
+from ._engine import Engine, engine
 from .mesh import Mesh, MeshInput, from_arrays, mesh_input
-from .operators import _vnc_soft, _warn_if_degenerate
+from .tuning import Tuning
 
-__all__ = ["vnc_soft"]
+__all__ = ["vnc_soft", "vnc_hard"]
 
 
 class _VncSoft(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, verts: torch.Tensor, mesh: Mesh, tau, kappa: float):
-        device = get_device(verts.device)
-        x = wp.from_torch(verts.detach().contiguous(), dtype=wp.vec3, requires_grad=True)
-        tape = wp.Tape()
-        with tape:
-            H, n = _vnc_soft(mesh, tau, kappa=kappa, device=device, positions=x, tape=tape, strategy="auto")
-        ctx.tape, ctx.x, ctx.H, ctx.n = tape, x, H, n
-        return wp.to_torch(H).clone(), wp.to_torch(n).clone()
+    def forward(ctx, x: torch.Tensor, eng: Engine, tau, kappa: float):
+        xw = wp.from_torch(x.detach(), dtype=wp.vec3)
+        state, token = eng.soft_state(xw, tau, kappa)
+        state = wp.to_torch(state)
+        ctx.eng, ctx.tau, ctx.kappa, ctx.state, ctx.token = eng, tau, kappa, state, token
+        ctx.save_for_backward(x)
+        # views of one (V, 9) array; the sums of its last columns are what the backward pass reads
+        return state[:, 0], state[:, 1:4]
 
     @staticmethod
     def backward(ctx, grad_H: torch.Tensor, grad_n: torch.Tensor):
-        tape = ctx.tape
-        gH = wp.from_torch(grad_H.contiguous().to(torch.float32))
-        gn = wp.from_torch(grad_n.contiguous().to(torch.float32), dtype=wp.vec3)
-        tape.backward(grads={ctx.H: gH, ctx.n: gn})
-        grad = wp.to_torch(ctx.x.grad).clone()
-        tape.zero()
-        return grad, None, None, None
+        (x,) = ctx.saved_tensors
+        grads = torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1).to(torch.float32).contiguous()
+        gx = ctx.eng.soft_gradient(wp.from_torch(x.detach(), dtype=wp.vec3), ctx.tau, ctx.kappa,
+                                   wp.from_torch(ctx.state), wp.from_torch(grads), ctx.token)
+        return wp.to_torch(gx), None, None, None
 
 
-def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0) -> tuple[torch.Tensor, torch.Tensor]:
+class _VncHard(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, eng: Engine, tau, kappa):
+        xw = wp.from_torch(x.detach(), dtype=wp.vec3)
+        outs = eng.hard_state(xw, tau, kappa)
+        ctx.eng, ctx.outs, ctx.x = eng, outs, x
+        return wp.to_torch(outs[3]), wp.to_torch(outs[4])
+
+    @staticmethod
+    def backward(ctx, grad_H: torch.Tensor, grad_n: torch.Tensor):
+        gH = wp.from_torch(grad_H.to(torch.float32).contiguous())
+        gn = wp.from_torch(grad_n.to(torch.float32).contiguous(), dtype=wp.vec3)
+        return wp.to_torch(ctx.eng.hard_gradient(ctx.outs, gH, gn)), None, None, None
+
+
+def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0,
+             tuning: Tuning | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Differentiable VNC-soft (Eq. 3) on a batch-free mesh.
 
     Args:
@@ -50,10 +71,12 @@ def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0) -> tuple[tor
         mesh: the connectivity, any of: a :class:`~vnc_warp.Mesh` (``verts`` has a row per mesh vertex, or a row
             per vertex of the input it was loaded from, ``mesh.source_index``); a ``trimesh.Trimesh``, a
             ``(V, F)`` pair or a path whose vertices are the rows of ``verts``; or (F, 3) integer faces indexing
-            the rows of ``verts`` (checked for manifoldness and winding). Reuse a Mesh across calls: building one
-            from faces costs a sort of the edges.
-        tau: scale (mesh units), a float or one value per row of ``verts`` (a tensor or array; not differentiated).
+            the rows of ``verts`` (checked for manifoldness and winding). Reuse a Mesh across calls: it keeps its
+            engine (plans, captured graphs); building one from faces costs a sort of the edges.
+        tau: scale (mesh units), a float or one value per row of ``verts`` (a tensor on ``verts``' device or an
+            array; not differentiated).
         kappa: cut-off ratio, ``sigma = tau / kappa``.
+        tuning: the engine's knobs (:class:`~vnc_warp.tuning.Tuning`).
 
     Returns:
         ``(H, n)``: (V_in,) curvature and (V_in, 3) unit normals, float32, on ``verts.device``, one row per row of
@@ -61,7 +84,28 @@ def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0) -> tuple[tor
         gradient of that vertex split equally among them; a row no face uses gets NaN.
     """
     _check_verts(verts)
-    return _vnc_soft_input(verts, _connectivity(verts, mesh), tau, kappa=kappa)
+    return vnc_soft_input(verts, _connectivity(verts, mesh), tau, kappa=kappa, tuning=tuning)
+
+
+def vnc_hard(verts: torch.Tensor, mesh, tau, *, kappa: float | None = 6.0,
+             tuning: Tuning | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable VNC-hard (Eq. 2) on a batch-free mesh: balls of radius ``tau`` at the vertices, exact chords.
+
+    The gradient holds every term of Eq. (2): the chord of each edge in each ball (with respect to the ball's centre
+    and both ends of the edge), the Gaussian weight at the edge's midpoint, and the edge's dihedral angle and normal.
+
+    Args:
+        verts: (V_in, 3) float32 or float64 vertex positions, on CPU or CUDA; gradients flow to it.
+        mesh: the connectivity, as for :func:`vnc_soft`.
+        tau: ball radius (mesh units), a float or one value per row of ``verts`` (not differentiated).
+        kappa: ``sigma = tau / kappa`` of the Gaussian weight, or None for ``w = 1``.
+        tuning: the engine's knobs (:class:`~vnc_warp.tuning.Tuning`).
+
+    Returns:
+        ``(H, n)`` as for :func:`vnc_soft`.
+    """
+    _check_verts(verts)
+    return _apply(_VncHard, verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=False)
 
 
 def _check_verts(verts) -> None:
@@ -71,7 +115,8 @@ def _check_verts(verts) -> None:
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}")
     if verts.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"verts must be float32 or float64 (Warp kernels run in float32), got {verts.dtype}")
-    if not torch.isfinite(verts).all():
+    # on CUDA this would wait for the device: the engine checks the positions there instead
+    if not verts.is_cuda and not torch.isfinite(verts).all():
         raise ValueError("verts contain NaN or infinite values")
 
 
@@ -97,11 +142,41 @@ def _connectivity(verts: torch.Tensor, mesh) -> MeshInput:
     return MeshInput(src.mesh, src.index, "torch", verts.device)
 
 
-def _vnc_soft_input(verts: torch.Tensor, src: MeshInput, tau, *, kappa: float, device=None):
-    """VNC-soft of the rows of ``verts`` on the surface of ``src`` (whose map answers per row)."""
+def vnc_soft_input(verts: torch.Tensor, src: MeshInput, tau, *, kappa: float, device=None,
+                   tuning: Tuning | None = None):
+    """VNC-soft of the rows of ``verts`` on the surface of ``src`` (whose map answers per row): the torch op behind
+    :func:`vnc_soft` and :func:`vnc_warp.vnc_soft` given tensors."""
     _check_verts(verts)
     if device is not None and get_device(device) != get_device(verts.device):
         raise ValueError(f"device={device} differs from the tensor's device {verts.device}; move the tensor")
+    return _apply(_VncSoft, verts, src, tau, kappa, tuning, soft=True)
+
+
+def _mesh_tau(verts: torch.Tensor, src: MeshInput, tau):
+    """``tau`` per mesh vertex: a scalar as it is, a tensor on ``verts``' device as a float32 ``wp.array`` (never
+    read back), anything else as a host array."""
+    if isinstance(tau, torch.Tensor) and tau.ndim > 0:
+        if tau.device != verts.device:
+            raise ValueError(f"tau is on {tau.device}, verts on {verts.device}")
+        t = tau.detach().to(torch.float32)
+        if src.index is not None:
+            if t.shape != (src.index.size,):
+                raise ValueError(f"tau: expected a scalar or one value per vertex ({src.index.size},), got shape "
+                                 f"{tuple(t.shape)}")
+            valid = np.nonzero(src.index >= 0)[0]
+            _, first = np.unique(src.index[valid], return_index=True)
+            t = t[torch.as_tensor(valid[first], device=t.device)]
+        elif t.shape != (src.mesh.num_vertices,):
+            raise ValueError(f"tau: expected a scalar or one value per vertex ({src.mesh.num_vertices},), got shape "
+                             f"{tuple(t.shape)}")
+        return wp.from_torch(t.contiguous())
+    if isinstance(tau, torch.Tensor):
+        tau = float(tau)
+    return src.to_mesh_vertices(tau, "tau")
+
+
+def _apply(op, verts: torch.Tensor, src: MeshInput, tau, kappa, tuning: Tuning | None, *, soft: bool):
+    """``op`` on the merged vertices of ``verts``, answered per row."""
     if src.num_input_vertices != verts.shape[0]:
         raise ValueError(f"verts has {verts.shape[0]} rows, the mesh {src.num_input_vertices} vertices")
     x = verts
@@ -116,18 +191,19 @@ def _vnc_soft_input(verts: torch.Tensor, src: MeshInput, tau, *, kappa: float, d
         x = x / torch.bincount(idx[used], minlength=V).clamp(min=1).to(verts.dtype)[:, None]
     # relative to the centre, in the input's precision, before float32: a mesh far from the origin keeps its digits
     centre = 0.5 * (x.detach().amin(0) + x.detach().amax(0))
-    x = (x - centre).to(torch.float32)
-    if isinstance(tau, torch.Tensor) and tau.ndim > 0 and tau.device != verts.device:
-        raise ValueError(f"tau is on {tau.device}, verts on {verts.device}")
-    tau = src.to_mesh_vertices(tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else tau, "tau")
-    H, n = _VncSoft.apply(x, src.mesh, tau, float(kappa))
+    x = (x - centre).to(torch.float32).contiguous()
+    mesh_tau = _mesh_tau(verts, src, tau)
+    eng = engine(src.mesh, get_device(verts.device), tuning=tuning)
+    H, n = op.apply(x, eng, mesh_tau, None if kappa is None else float(kappa))
     if not verts.is_cuda:
-        _warn_if_degenerate("vnc_soft", src, tau, kappa, wp.from_torch(n.detach(), dtype=wp.vec3))
+        warn_if_degenerate("vnc_soft" if soft else "vnc_hard", src,
+                           mesh_tau.numpy() if isinstance(mesh_tau, wp.array) else mesh_tau, kappa,
+                           wp.from_torch(n.detach().contiguous(), dtype=wp.vec3), soft=soft)
     if idx is None:
         return H, n
     pick = idx.clamp(min=0)
     H, n = H[pick], n[pick]
-    if not bool(used.all()):
+    if (src.index < 0).any():
         H = torch.where(used, H, torch.full_like(H, float("nan")))
         n = torch.where(used[:, None], n, torch.full_like(n, float("nan")))
     return H, n

@@ -12,7 +12,7 @@ import torch
 from vnc_warp.shapes import icosphere
 from vnc_warp.training.baseline import (LatentInterpolation, encode_surface, interpolate_latents, interpolation_alpha,
                                         latent_interpolation)
-from vnc_warp.training.checkpoint import load_model
+from vnc_warp.training.model import load_model
 from vnc_warp.training.config import named_config
 from vnc_warp.training.data import normalization, read_trajectory
 from vnc_warp.training.inference import decode_sdf_grid, surface_condition

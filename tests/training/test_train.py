@@ -16,7 +16,8 @@ import torch.multiprocessing as mp
 import trimesh
 
 from vnc_warp.cli import main
-from vnc_warp.training.checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
+from vnc_warp.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from vnc_warp.training.model import load_model
 from vnc_warp.training.data import sample_surface
 from vnc_warp.training.latent import pearson
 from vnc_warp.training.metrics import chamfer_distance

@@ -98,11 +98,11 @@ def _cvae_figures(checkpoint, mesh, traj, out: Path, device, resolution: int, si
     import torch
 
     from vnc_warp import figures
-    from vnc_warp.training.checkpoint import load_model
+    from vnc_warp.training.model import load_model
     from vnc_warp.training.inference import decode_mesh, surface_condition
-    from vnc_warp.training.train import resolve_device
+    from vnc_warp._device import torch_device
 
-    tdev = resolve_device(str(device))
+    tdev = torch_device(device)
     model, config = load_model(checkpoint, device=tdev)
     surface, center, scale = surface_condition(mesh, num_points=config.data.num_surface)
     decoded = []

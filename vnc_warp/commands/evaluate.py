@@ -57,10 +57,10 @@ def run(args: argparse.Namespace) -> int:
         baseline = None
         if args.baseline is not None:
             from vnc_warp.training.baseline import latent_interpolation
-            from vnc_warp.training.checkpoint import load_model
-            from vnc_warp.training.train import resolve_device
+            from vnc_warp.training.model import load_model
+            from vnc_warp._device import torch_device
 
-            model, config = load_model(args.baseline, device=resolve_device(args.device))
+            model, config = load_model(args.baseline, device=torch_device(args.device))
             folder = args.baseline_out or f"{str(args.pred).rstrip('/')}_baseline"
             latent_interpolation(model, args.gt, sorted(preds), folder, resolution=args.resolution,
                                  num_surface=config.data.num_surface, seed=args.seed)
