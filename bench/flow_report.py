@@ -80,8 +80,8 @@ def summarize(traj, n: int) -> dict:
     dev = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:]]
     ruled = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:] if _exception(r, n) is None]
     ratios = [r["thickness_ratio"] for r in recs[1:] if r.get("thickness_ratio")]
-    same = [r["index"] for r, prev in zip(traj.meshes[1:], traj.meshes[:-1])
-            if r.num_vertices == prev.num_vertices and np.array_equal(r.vertices, prev.vertices)]
+    same = [i for i, (m, prev) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1]), start=1)
+            if m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices)]
     return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
             "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
             "min_thickness_ratio": min(ratios, default=None), "thickness": [r["thickness"] for r in recs],

@@ -59,21 +59,25 @@ def thin_part_correction(
     H_large: wp.array2d(dtype=float),
     mean_large: wp.array(dtype=float),
     row: int,
-    radius: float,
-    thin: float,
-    thick: float,
+    edge: float,
+    tube: float,
+    ball: float,
     out: wp.array(dtype=float),
 ):
     """Per vertex: ``(1 - c_k) max(H(v_k, tau_max) - mean(tau_max), 0)``, the part-scale excess curvature turned
-    around on thin parts, with ``c_k`` going from -1 at relative thickness ``thickness[k] / radius <= thin`` to 1
-    at ``>= thick`` (0 correction: Eq. (5) unchanged); ``H_large[row]`` is the scale curve at tau_max. A vertex whose
-    inward ray found no surface (``thickness < 0``) counts as thick."""
+    around where the part is tube-like. ``c_k`` goes from -1 at shape factor ``rho <= tube`` to 1 at ``rho >= ball``,
+    with ``rho = thickness * 2 sqrt(3) H(v_k, tau_max) / edge``: the thickness along the inward normal times the
+    mean curvature (VNC-soft's dimensionless H is ``edge / (2 sqrt(3))`` times it on a regular tessellation), 1 on a
+    tube, 2 on a ball, more at a tip. ``H_large[row]`` is the scale curve at tau_max; a vertex whose inward ray
+    found no surface (``thickness < 0``) keeps Eq. (5)."""
     k = wp.tid()
     t = thickness[k]
+    h = H_large[row, k]
     c = float(1.0)
     if t > 0.0:
-        c = wp.clamp(2.0 * (t / radius - thin) / wp.max(thick - thin, 1.0e-6) - 1.0, -1.0, 1.0)
-    out[k] = (1.0 - c) * wp.max(H_large[row, k] - mean_large[row], 0.0)
+        rho = t * 3.4641016 * h / edge
+        c = wp.clamp(2.0 * (rho - tube) / wp.max(ball - tube, 1.0e-6) - 1.0, -1.0, 1.0)
+    out[k] = (1.0 - c) * wp.max(h - mean_large[row], 0.0)
 
 
 @wp.kernel(enable_backward=False)

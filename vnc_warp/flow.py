@@ -12,13 +12,13 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
   ``eta`` times the vertex's own mean incident edge length. The rule is unit-free.
 * **Spatial balance**, Eq. (6): per-vertex adaptive scales ``tau_k`` from the stage's VNC-Scale curves
-  with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage. **Thin parts**
-  (see :data:`THIN_PARTS`): on a part thinner than ``thin_part`` times the radius of the sphere of equal
-  area (measured through the shape along each vertex's inward normal at the stage's start), the part-scale
-  excess of curvature ``max(H(v_k, tau_max) - mean H(tau_max), 0)`` is turned around in Eq. (5), so the part
-  fattens toward the shape's mean curvature (and merges with its neighbours) instead of thinning into a
-  thread; its details are still smoothed. Between ``thin_part`` and ``thick_part`` the correction fades out;
-  thicker parts follow Eq. (5) as written.
+  with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage. **Thin parts** (see
+  :data:`THIN_PARTS`): where the part around a vertex is a tube (shape factor ``rho`` = thickness along the
+  inward normal times the mean curvature at the largest scale: 1 on a tube, 2 on a ball) the part-scale excess
+  of curvature ``max(H(v_k, tau_max) - mean H(tau_max), 0)`` is turned around in Eq. (5), so the part fattens
+  toward the shape's mean curvature and merges with its neighbours instead of thinning into a thread; its
+  details are still smoothed. The correction fades out between ``rho = tube_rho`` and ``ball_rho``; balls,
+  tips, flat and concave regions follow Eq. (5) as written. It is refreshed at every evaluation of ``S``.
 * **Temporal balance**: ``S_init = sum_k s(v_k | M0)``; stage ``i`` ends at ``t_i = S_cur / S_init`` (Eq. 7)
   within ``tolerance`` of its equidistant target ``1 - i/N``. The stage controller plans the steps to the
   next evaluation of ``S`` from the decay rate observed so far and, when a run of steps overshoots the
@@ -85,13 +85,17 @@ swallows the limbs within two stages.
 Sec. 3.2 states what the flow is for, "minimizing |H_soft - H_ref| -> 0", and introduces spatial balance
 against exactly this failure, "flat regions may degenerate into singularities long before complex wrinkles
 are resolved". The rule splits the deviation of Eq. (5) at a vertex into its part-scale share, the excess of
-its curvature at the largest scale over the mean there, and the rest (detail). On a part thinner than the
-shape (thickness below ``thin_part`` times the radius of the sphere of equal area) moving along the part-scale
-excess raises it, so that share is turned around: such a part fattens toward the shape's mean curvature
-while its details are still smoothed by Eq. (5). The correction fades out up to ``thick_part`` and never
-touches concave regions or parts flatter than the mean (a plate's faces still move apart, concavities still
-fill). With it the total VNC-AUC falls from the first step, every stage meets its budget in a few steps, and
-limbs shorten and fatten until they merge with the body and each other: the compact abstraction of Fig. 9a.
+its curvature at the largest scale over the mean there, and the rest (detail). Where the part is a tube, moving
+along the part-scale excess raises it, so that share is turned around: the part fattens toward the shape's
+mean curvature while its details are still smoothed by Eq. (5). A tube is told from a ball or a tip by its
+shape factor ``rho``, the thickness along the inward normal times the mean curvature at the largest scale
+(VNC-soft's H is ``L / (2 sqrt 3)`` times the mean curvature on a regular tessellation of edge ``L``): 1 on a
+tube (thickness 2r, curvature 1/2r), 2 on a ball, more at a tip; shrinking a ball or a tip lowers the total
+VNC-AUC (its vertices go with its area), thinning a tube does not (its VNC-AUC is about its length over L
+whatever its radius). The correction fades out between ``tube_rho`` and ``ball_rho`` and never touches
+concave regions or parts flatter than the mean (a plate's faces still move apart, concavities still fill).
+With it the total VNC-AUC falls from the first step, every stage meets its budget in a few steps, and limbs
+shorten and fatten until they merge with the body and each other: the compact abstraction of Fig. 9a.
 """
 
 
@@ -113,12 +117,14 @@ class FlowParams:
             explicit step diverges above about 12-16 (measured on Spot with the default scales); 6 keeps a
             factor of two.
         phi_fraction: Eq. (6) budget as a fraction of the stage's mean per-vertex VNC-AUC.
-        thin_part: parts thinner than this many radii of the sphere of equal area have the part-scale
-            share of their deviation turned around in Eq. (5) (see :data:`THIN_PARTS`).
-        thick_part: the correction fades out up to this relative thickness; ``thin_part = thick_part = 0``
-            is Eq. (5) as written.
+        tube_rho: where the shape factor ``rho`` (thickness along the inward normal times the mean curvature
+            at the largest scale: 1 on a tube, 2 on a ball) is at most this, the part-scale excess of curvature
+            is turned around in Eq. (5) (see :data:`THIN_PARTS`) ...
+        ball_rho: ... fading out up to this ``rho``; ``tube_rho = ball_rho = 0`` is Eq. (5) as written.
         tolerance: a stage ends when its ``t`` is within this of its target ``1 - i/N``.
         max_iters: iteration cap per stage.
+        remesh_every: a stage still short of its target after this many iterations since its last remesh is
+            remeshed on the way (the same topology regularization as between stages).
         eval_every: evaluate ``S_cur`` at least this many iterations apart.
         eval_max: at most this many iterations apart. In between, the next evaluation is placed where the
             decay rate observed so far reaches the stage's target (the 16-scale evaluation of ``S`` costs
@@ -143,10 +149,11 @@ class FlowParams:
     step_fraction: float = 0.25
     max_lambda: float = 6.0
     phi_fraction: float = 0.5
-    thin_part: float = 0.3
-    thick_part: float = 0.6
+    tube_rho: float = 1.2
+    ball_rho: float = 1.8
     tolerance: float = 0.005
     max_iters: int = 300
+    remesh_every: int = 32
     eval_every: int = 1
     eval_max: int = 16
     patience: int = 8
@@ -167,8 +174,10 @@ class FlowParams:
         for name in ("step_fraction", "phi_fraction", "kappa", "tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
-        if not 0.0 <= self.thin_part <= self.thick_part:
-            raise ValueError(f"need 0 <= thin_part <= thick_part, got {self.thin_part} and {self.thick_part}")
+        if not 0.0 <= self.tube_rho <= self.ball_rho:
+            raise ValueError(f"need 0 <= tube_rho <= ball_rho, got {self.tube_rho} and {self.ball_rho}")
+        if self.remesh_every < 1:
+            raise ValueError(f"remesh_every must be >= 1, got {self.remesh_every}")
         if self.max_iters < 1 or self.eval_every < 1 or self.patience < 1 or self.eval_max < self.eval_every:
             raise ValueError("max_iters, eval_every and patience must be >= 1, and eval_max >= eval_every")
 
@@ -438,14 +447,21 @@ class _Stepper:
                 self.tau = wp.full(V, np.float32(t), dtype=wp.float32, device=device)
             self.max_move = local
             self.part = wp.zeros(V, dtype=wp.float32, device=device)
-            if p.thick_part > 0.0:
-                area, _ = self.surface.measures()
-                wp.launch(_k.thin_part_correction, dim=V,
-                          inputs=[self.surface.vertex_thickness(), curve.H, curve.mean, len(taus) - 1,
-                                  float(np.sqrt(area / (4.0 * np.pi))), float(p.thin_part), float(p.thick_part)],
-                          outputs=[self.part], device=device)
+            self._thin_parts(curve)
         else:
             self._laplacian()
+
+    def _thin_parts(self, curve) -> None:
+        """The thin-part correction of the current state (:data:`THIN_PARTS`), from its scale curves: kept up
+        to date at every evaluation of ``S``, since a part that fattens stops needing it."""
+        p = self.p
+        if p.ball_rho <= 0.0:
+            return
+        surface = _Surface(self.x, self.surface.tri)
+        wp.launch(_k.thin_part_correction, dim=self.mesh.num_vertices,
+                  inputs=[surface.vertex_thickness(), curve.H, curve.mean, curve.H.shape[0] - 1, float(self.edge),
+                          float(p.tube_rho), float(p.ball_rho)],
+                  outputs=[self.part], device=self.device)
 
     def _edge_lengths(self) -> tuple[wp.array, float]:
         """Per vertex ``step_fraction`` times its mean incident edge length, and the mean edge length."""
@@ -511,7 +527,12 @@ class _Stepper:
         self.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=self.device)
 
     def complexity(self) -> float:
-        return self.engine.complexity(self.x)
+        """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
+        if self.p.method != "vnc":
+            return self.engine.complexity(self.x)
+        curve = self.engine.curve(self.x)
+        self._thin_parts(curve)
+        return _device_sum(vnc_auc(curve))
 
     def current(self) -> Mesh:
         # a copy: on the CPU device .numpy() is a view of the array, which later steps overwrite
@@ -626,7 +647,7 @@ def flow(
                 rec["remesh"] = report.to_dict()
             else:
                 cur = prev
-            state, positions = _run_stage(cur, i, taus, S_init, p, device, bar, rec)
+            state, positions = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             last = traj.records[-1]
             rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
@@ -669,9 +690,11 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
             "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
 
 
-def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict):
+def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
-    ``1 - i/N`` (see the module docstring); fills ``rec`` and returns the state and its device positions."""
+    ``1 - i/N`` (see the module docstring); fills ``rec`` and returns the state and its device positions. A stage
+    that takes more than ``remesh_every`` steps is remeshed on the way (``remesher``, if any), so no state drifts
+    that far from a regular tessellation (one that did folded the remains of a bunny's ears within a stage)."""
     from .remesh import _Clock
 
     parts: dict = {}
@@ -687,6 +710,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     x_a = wp.clone(stepper.x)
     last_valid = mesh
     rate = None
+    since, within = 0, []
     if not final and S_a <= target + tol:
         status = "remesh"
     while status is None:
@@ -709,6 +733,15 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         history.append([it, S_b])
         if bar is not None:
             bar.set_postfix(stage=i, it=it, t=f"{S_b / S_init:.3f}")
+        if S_b > target + tol and remesher is not None and p.method == "vnc" and it - since >= p.remesh_every:
+            mesh, report = remesher(positions=stepper.x)
+            within.append(report.to_dict())
+            stepper = _Stepper(mesh, taus, p, device)
+            S_a, it_a, since, rate, stale = stepper.S_start, it, it, None, 0
+            x_a = wp.clone(stepper.x)
+            history.append([it, S_a])
+            clock.lap("remesh")
+            continue
         if S_b > target + tol:
             rate = (S_a - S_b) / (it - it_a) if S_b < S_a else None
             # S need not fall at every step (a remeshed state is re-smoothed first): only a run of
@@ -748,7 +781,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target "
                      f"{max(target, 0.0) / S_init:.4f}); recording the t reached")
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
-               status=status, exception=exception, history=history,
+               status=status, exception=exception, history=history, remeshes_within=within,
                **_facts(state, device, None if status == "collapsed" else stepper.x))
     clock.lap("record")
     rec["parts"] = parts
