@@ -880,3 +880,11 @@ def scale_about(x: wp.array(dtype=wp.vec3), centre: wp.vec3, factor: float):
     """Per vertex: ``x <- centre + factor (x - centre)``."""
     v = wp.tid()
     x[v] = centre + factor * (x[v] - centre)
+
+
+@wp.kernel(enable_backward=False)
+def last_outgoing(tri: wp.array(dtype=wp.int32), out_he: wp.array(dtype=wp.int32)):
+    """Per half-edge: max it into ``out_he`` of the vertex it leaves (``out_he`` set to -1 first): a canonical
+    choice of each vertex's outgoing half-edge, so a surface rebuilt from its faces walks its rings the same way."""
+    h = wp.tid()
+    wp.atomic_max(out_he, tri[h], h)

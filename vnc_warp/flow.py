@@ -64,7 +64,7 @@ __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "total
 
 FORMAT = "vnc-warp-trajectory/1"
 # An evaluation makes progress when S falls by more than this share below the stage's best so far.
-_PROGRESS = 1.0e-4
+_PROGRESS = 1.0e-3
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -123,8 +123,9 @@ class FlowParams:
         ball_rho: ... fading out up to this ``rho``; ``tube_rho = ball_rho = 0`` is Eq. (5) as written.
         tolerance: a stage ends when its ``t`` is within this of its target ``1 - i/N``.
         max_iters: iteration cap per stage.
-        remesh_every: a stage still short of its target after this many iterations since its last remesh is
-            remeshed on the way (the same topology regularization as between stages).
+        stall_remeshes: a stage that stalls short of its target (``patience`` evaluations without progress)
+            is remeshed from its best state and goes on, at most this many times (the same topology
+            regularization as between stages; never in the last stage, whose target is out of reach).
         eval_every: evaluate ``S_cur`` at least this many iterations apart.
         eval_max: at most this many iterations apart. In between, the next evaluation is placed where the
             decay rate observed so far reaches the stage's target (the 16-scale evaluation of ``S`` costs
@@ -153,7 +154,7 @@ class FlowParams:
     ball_rho: float = 1.8
     tolerance: float = 0.005
     max_iters: int = 300
-    remesh_every: int = 32
+    stall_remeshes: int = 4
     eval_every: int = 1
     eval_max: int = 16
     patience: int = 8
@@ -176,8 +177,8 @@ class FlowParams:
                 raise ValueError(f"{name} must be positive")
         if not 0.0 <= self.tube_rho <= self.ball_rho:
             raise ValueError(f"need 0 <= tube_rho <= ball_rho, got {self.tube_rho} and {self.ball_rho}")
-        if self.remesh_every < 1:
-            raise ValueError(f"remesh_every must be >= 1, got {self.remesh_every}")
+        if self.stall_remeshes < 0:
+            raise ValueError(f"stall_remeshes must be >= 0, got {self.stall_remeshes}")
         if self.max_iters < 1 or self.eval_every < 1 or self.patience < 1 or self.eval_max < self.eval_every:
             raise ValueError("max_iters, eval_every and patience must be >= 1, and eval_max >= eval_every")
 
@@ -693,8 +694,7 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
 def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
     ``1 - i/N`` (see the module docstring); fills ``rec`` and returns the state and its device positions. A stage
-    that takes more than ``remesh_every`` steps is remeshed on the way (``remesher``, if any), so no state drifts
-    that far from a regular tessellation (one that did folded the remains of a bunny's ears within a stage)."""
+    that stalls is remeshed on the way (``remesher``, if any; ``stall_remeshes``)."""
     from .remesh import _Clock
 
     parts: dict = {}
@@ -710,15 +710,18 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     x_a = wp.clone(stepper.x)
     last_valid = mesh
     rate = None
-    since, within = 0, []
+    since, within, ahead = 0, [], p.eval_every // 2
     if not final and S_a <= target + tol:
         status = "remesh"
     while status is None:
         if it >= p.max_iters:
             status = "max_iters"
             break
-        ahead = p.eval_every if rate is None else int(np.ceil((S_a - target) / rate))
-        for _ in range(min(max(p.eval_every, min(ahead, p.eval_max)), p.max_iters - it)):
+        # steps to the next evaluation: to where the observed decay rate reaches the target; without a decay
+        # (S rose), twice as many as last time
+        ahead = 2 * ahead if rate is None else int(np.ceil((S_a - target) / rate))
+        ahead = max(p.eval_every, min(ahead, p.eval_max))
+        for _ in range(min(ahead, p.max_iters - it)):
             stepper.step()
             it += 1
         clock.lap("steps")
@@ -733,25 +736,27 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         history.append([it, S_b])
         if bar is not None:
             bar.set_postfix(stage=i, it=it, t=f"{S_b / S_init:.3f}")
-        if S_b > target + tol and remesher is not None and p.method == "vnc" and it - since >= p.remesh_every:
-            mesh, report = remesher(positions=stepper.x)
-            within.append(report.to_dict())
-            stepper = _Stepper(mesh, taus, p, device)
-            S_a, it_a, since, rate, stale = stepper.S_start, it, it, None, 0
-            x_a = wp.clone(stepper.x)
-            history.append([it, S_a])
-            clock.lap("remesh")
-            continue
         if S_b > target + tol:
             rate = (S_a - S_b) / (it - it_a) if S_b < S_a else None
             # S need not fall at every step (a remeshed state is re-smoothed first): only a run of
-            # evaluations without a new low ends a stage early
+            # evaluations without a new low counts as a stall
             stale = stale + 1 if S_b > S_a * (1.0 - _PROGRESS) else 0
             if S_b < S_a:
                 wp.copy(x_a, stepper.x)
                 S_a, it_a = S_b, it
-            if stale >= p.patience and it >= 4 * p.eval_max:
-                status = "final" if final else "converged"
+            if stale >= p.patience and it - since >= 4 * p.eval_max:
+                if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
+                    status = "final" if final else "converged"
+                    continue
+                # a stalled stage is remeshed from its best state and goes on (a state far from a regular
+                # tessellation stalls: the remains of a bunny's ears folded, a dumbbell's neck settled)
+                mesh, report = remesher(positions=x_a)
+                within.append(report.to_dict())
+                stepper = _Stepper(mesh, taus, p, device)
+                S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
+                x_a = wp.clone(stepper.x)
+                history.append([it, S_a])
+                clock.lap("remesh")
             continue
         if S_b < target - tol:
             S_b, found = _search_chord(stepper, x_a, S_a, S_b, target, tol, history, it_a, it)

@@ -842,8 +842,12 @@ class _HalfEdgeSurface:
                   device=self.device)
 
     def to_mesh(self, name: str) -> Mesh:
-        """The surface as a :class:`~vnc_warp.mesh.Mesh`, its edge topology built on the device."""
+        """The surface as a :class:`~vnc_warp.mesh.Mesh`, its edge topology built on the device. Each vertex's
+        outgoing half-edge is reset to the one :meth:`build` picks (the last), so that a run resumed from the
+        saved mesh regularizes exactly as the run that wrote it."""
         dev = self.device
+        self.out_he.fill_(-1)
+        wp.launch(_kr.last_outgoing, dim=self.num_he, inputs=[self.tri], outputs=[self.out_he], device=dev)
         flags = wp.empty(self.num_he, dtype=wp.int32, device=dev)
         wp.launch(_kr.owned_edges, dim=self.num_he, inputs=[self.twin], outputs=[flags], device=dev)
         offsets = wp.empty_like(flags)
