@@ -71,7 +71,7 @@ def test_remesh_raises_when_resolution_too_low():
     """A grid too coarse for the requested face count raises instead of returning a short mesh."""
     src = load_mesh(real_mesh_path("spot_lowres.obj"))
     with pytest.raises(MeshError, match="fewer than"):
-        sdf_remesh(src, faces=src.num_faces, resolution=12, device="cpu")
+        sdf_remesh(src, faces=2 * src.num_faces, resolution=12, device="cpu")
     with pytest.raises(ValueError, match="marching_cubes"):
         sdf_remesh(src, device="cpu", marching_cubes="vtk")
     with pytest.raises(ValueError, match="relax_iterations"):
