@@ -7,11 +7,36 @@ The step reads one state and writes another (never in place), so K steps can be 
 import warp as wp
 
 
-@wp.kernel
-def mean_value(values: wp.array(dtype=float), inv_count: float, out: wp.array(dtype=float)):
-    """``out[0] += values[k] / V`` (``out`` zeroed first): the global reference of Eq. (5)."""
+# Partial sums of a fixed-order mean (:func:`strided_sums`, :func:`ordered_mean`): a fixed count, the same on every
+# device, so the order of the additions is the same on the CPU and on CUDA.
+MEAN_PARTS = 256
+
+
+@wp.kernel(enable_backward=False)
+def strided_sums(values: wp.array(dtype=float), partial: wp.array(dtype=wp.float64)):
+    """``partial[t] = sum_j values[t + j P]`` (``P = partial.shape[0]``), added in index order in float64: the first
+    pass of a mean whose result does not depend on thread timing, as an atomic float sum on CUDA does."""
+    t = wp.tid()
+    acc = wp.float64(0.0)
+    for k in range(t, values.shape[0], partial.shape[0]):
+        acc += wp.float64(values[k])
+    partial[t] = acc
+
+
+@wp.kernel(enable_backward=False)
+def ordered_mean(partial: wp.array(dtype=wp.float64), inv_count: wp.float64, out: wp.array(dtype=float)):
+    """``out[0] = inv_count * sum_t partial[t]``, added in index order by one thread (launch with ``dim=1``)."""
+    acc = wp.float64(0.0)
+    for t in range(partial.shape[0]):
+        acc += partial[t]
+    out[0] = float(acc * inv_count)
+
+
+@wp.kernel(enable_backward=False)
+def mean_adjoint(out_grad: wp.array(dtype=float), inv_count: float, values_grad: wp.array(dtype=float)):
+    """Adjoint of the mean: ``values_grad[k] += out_grad[0] * inv_count``."""
     k = wp.tid()
-    wp.atomic_add(out, 0, values[k] * inv_count)
+    values_grad[k] = values_grad[k] + out_grad[0] * inv_count
 
 
 @wp.func
@@ -78,39 +103,6 @@ def thin_part_correction(
         rho = t * 3.4641016 * h / edge
         c = wp.clamp(2.0 * (rho - tube) / wp.max(ball - tube, 1.0e-6) - 1.0, -1.0, 1.0)
     out[k] = (1.0 - c) * wp.max(h - mean_large[row], 0.0)
-
-
-@wp.kernel(enable_backward=False)
-def vertex_edge_length(
-    x: wp.array(dtype=wp.vec3),
-    edges: wp.array(dtype=wp.vec2i),
-    total: wp.array(dtype=float),
-    count: wp.array(dtype=float),
-):
-    """Sum and count of incident edge lengths per vertex (``total``/``count`` zeroed first)."""
-    j = wp.tid()
-    a = edges[j][0]
-    b = edges[j][1]
-    l = wp.length(x[b] - x[a])
-    wp.atomic_add(total, a, l)
-    wp.atomic_add(total, b, l)
-    wp.atomic_add(count, a, 1.0)
-    wp.atomic_add(count, b, 1.0)
-
-
-@wp.kernel(enable_backward=False)
-def scaled_ratio(total: wp.array(dtype=float), count: wp.array(dtype=float), factor: float,
-                 out: wp.array(dtype=float)):
-    """Per entry: ``factor * total / max(count, 1)``."""
-    k = wp.tid()
-    out[k] = factor * total[k] / wp.max(count[k], 1.0)
-
-
-@wp.kernel(enable_backward=False)
-def sum_values(values: wp.array(dtype=float), out: wp.array(dtype=wp.float64)):
-    """``out[0] += values[k]`` in float64 (``out`` zeroed first)."""
-    k = wp.tid()
-    wp.atomic_add(out, 0, wp.float64(values[k]))
 
 
 @wp.kernel(enable_backward=False)

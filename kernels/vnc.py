@@ -658,20 +658,30 @@ def point_stats(
 ):
     """Bounding box of ``x``, radius statistics and the longest edge in one strided pass.
 
-    ``stats`` is preset to ``[+inf] * 3 + [-inf] * 4 + [0, 0, 0]`` and becomes
-    ``[lo.xyz, hi.xyz, max radius, sum radius, max length, sum length]``.
+    ``stats`` is preset to ``[+inf] * 3 + [-inf] * 4 + [0, 0, 0, 0, 0]`` and becomes
+    ``[lo.xyz, hi.xyz, max radius, sum radius, max length, sum length, bad points, bad radii]``: the counts of
+    points with a NaN or infinite coordinate and of radii that are not positive and finite (which would otherwise
+    come out as silent zeros).
     """
     i = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
+    bad_x = float(0.0)
     for k in range(i, x.shape[0], stride):
-        lo = wp.min(lo, x[k])
-        hi = wp.max(hi, x[k])
+        if wp.isfinite(x[k]):
+            lo = wp.min(lo, x[k])
+            hi = wp.max(hi, x[k])
+        else:
+            bad_x += 1.0
     rmax = float(-1.0e30)
     rsum = float(0.0)
+    bad_r = float(0.0)
     for k in range(i, radius.shape[0], stride):
-        rmax = wp.max(rmax, radius[k])
-        rsum += radius[k]
+        if wp.isfinite(radius[k]) and radius[k] > 0.0:
+            rmax = wp.max(rmax, radius[k])
+            rsum += radius[k]
+        else:
+            bad_r += 1.0
     lmax = float(0.0)
     lsum = float(0.0)
     for k in range(i, length.shape[0], stride):
@@ -684,6 +694,8 @@ def point_stats(
     wp.atomic_add(stats, 7, rsum)
     wp.atomic_max(stats, 8, lmax)
     wp.atomic_add(stats, 9, lsum)
+    wp.atomic_add(stats, 10, bad_x)
+    wp.atomic_add(stats, 11, bad_r)
 
 
 @wp.func

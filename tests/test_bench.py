@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bench import vnc as bench
+from conftest import mesh_path
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +94,7 @@ def test_breakdown_runs_and_reports_every_operator(tmp_path):
     from bench import breakdown
 
     out = tmp_path / "breakdown.json"
-    assert breakdown.main(["--device", "cpu", "--mesh", "spot_lowres.obj", "--taus", "2", "diag/2",
+    assert breakdown.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "diag/2",
                            "--repeats", "1", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["V"] > 0 and doc["device"] == "cpu"
@@ -112,7 +113,7 @@ def test_tune_times_every_setting_and_restores_the_knobs(tmp_path):
     before = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,
               _pairs.FINE_BITS, _pairs.BUSY_BALL_CELL, dict(_k.BALL_VARIANT))
     out = tmp_path / "tune.json"
-    assert tune.main(["--device", "cpu", "--mesh", "spot_lowres.obj", "--taus", "2", "--qb", "4", "--splits", "auto",
+    assert tune.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--qb", "4", "--splits", "auto",
                       "--cell", "0.5", "1.0", "--spread", "8", "--busy", "0", "inf", "--tier", "1.5",
                       "--ball-kernels", "unit", "half_chunks", "--repeats", "1", "--out", str(out)]) == 0
     after = (_k.QB, _pairs.SPLITS, _pairs.CELL_FRACTION, _pairs.SPREAD, _pairs.BUSY_SOURCES, _pairs.TIER_BASE,

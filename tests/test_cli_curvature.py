@@ -2,7 +2,7 @@
 
 import numpy as np
 import trimesh
-from conftest import real_mesh_path
+from conftest import mesh_path
 
 import vnc_warp as vw
 from vnc_warp.cli import main
@@ -10,7 +10,7 @@ from vnc_warp.cli import main
 
 def test_curvature_cli_writes_ply_and_npz(tmp_path):
     """The command writes a coloured PLY and an .npz whose values equal the library call."""
-    path = real_mesh_path("torus.obj")
+    path = mesh_path("torus.obj")
     out = tmp_path / "sub" / "torus_vnc"
     assert main(["curvature", str(path), "--out", str(out), "--tau-edges", "3", "8", "--device", "cpu"]) == 0
     data = np.load(str(out) + ".npz")

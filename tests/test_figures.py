@@ -144,10 +144,10 @@ def test_scale_stability_plots_and_validates(tmp_path, shapes):
     soft = vw.scale_curve(m, taus, device="cpu").H.numpy()
     base = np.stack([vw.integrated_mean_curvature(m, float(t), device="cpu").numpy() for t in taus])
     img = figures.scale_stability(taus, {"VNC-soft": soft}, {"baseline": base}, tmp_path / "fig6.png",
-                                  edge_length=m.mean_edge_length, panel_size=(400, 300))
+                                  edge_length=m.mean_edge_length, size=(1200, 400))
     _png(tmp_path / "fig6.png", img)
     _not_blank(img)
-    assert img.shape[1] >= 3 * 400
+    assert img.shape == (400, 1200, 3) and (tmp_path / "fig6.pdf").read_bytes().startswith(b"%PDF")
     with pytest.raises(ValueError):
         figures.scale_stability(taus, {"VNC-soft": soft[:3]})
     with pytest.raises(ValueError):
@@ -172,6 +172,7 @@ def test_flow_auc_with_and_without_history(tmp_path):
     img = figures.flow_auc(_trajectory(True), tmp_path / "a.png", size=(500, 300))
     _png(tmp_path / "a.png", img)
     _not_blank(img)
+    assert (tmp_path / "a.pdf").exists()
     img2 = figures.flow_auc(_trajectory(False), size=(500, 300))
     _not_blank(img2)
     assert not np.array_equal(img[-300:], img2[-300:])
@@ -227,10 +228,10 @@ def test_latent_space_scatter(tmp_path):
     rng = np.random.default_rng(0)
     t = np.linspace(0.0, 1.0, 12)
     z = rng.normal(size=(12, 8, 4)) * 0.1 + t[:, None, None]
-    img = figures.latent_space(z, t, tmp_path / "f.png", panel_size=(400, 320))
+    img = figures.latent_space(z, t, tmp_path / "f.png", size=(900, 400))
     _png(tmp_path / "f.png", img)
     _not_blank(img)
-    assert img.shape[1] >= 2 * 400
+    assert img.shape == (400, 900, 3) and (tmp_path / "f.pdf").exists()
     with pytest.raises(ValueError):
         figures.latent_space(z[:2], t[:2])
     with pytest.raises(ValueError):

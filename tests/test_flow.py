@@ -15,7 +15,7 @@ import warp as wp
 import vnc_warp as vw
 
 flow_mod = importlib.import_module("vnc_warp.flow")
-from vnc_warp.flow import FlowError, Trajectory, flow, flow_steps, sphericity, total_complexity
+from vnc_warp.flow import Trajectory, flow, flow_steps, sphericity, total_complexity
 from vnc_warp.remesh import surface_problems
 from vnc_warp.shapes import random_shape
 
@@ -85,7 +85,8 @@ def test_save_load_roundtrip(trajectory):
         np.testing.assert_array_equal(a.vertices, b.vertices)
         np.testing.assert_array_equal(a.faces, b.faces)
     man = json.loads((out / "manifest.json").read_text())
-    assert man["format"] == "vnc-warp-trajectory/1" and man["complete"]
+    assert man["format"] == "vnc-warp-trajectory/2" and man["complete"] and man["writing"] is None
+    assert all(len(r["sha256"]) == 64 for r in man["stages"])
     assert all(len(r["history"]) >= 1 for r in man["stages"][1:])
     # the per-stage facts of the remesher and the controller are in the manifest
     assert man["stages"][0]["remesh"]["method"] in ("surface", "level_set")
@@ -126,7 +127,7 @@ def test_resume_after_interruption_gives_same_result(shape, trajectory, tmp_path
 def test_resume_refuses_a_different_run(shape, trajectory):
     """An output folder holding a run with other parameters is refused, not overwritten."""
     _, out = trajectory
-    with pytest.raises(FlowError, match="different run"):
+    with pytest.raises(vw.TrajectoryError, match="different run"):
         flow(shape, stages=STAGES + 1, device="cpu", progress=False, out_dir=out)
 
 
@@ -208,14 +209,63 @@ def test_gradient_through_flow_steps(device):
             assert abs(g[i, d] - fd) < 0.02 * max(1.0, abs(fd)), (i, d, g[i, d], fd)
 
 
+@pytest.mark.parametrize("V", [7, 256, 100_003])
+def test_reference_mean_is_the_float64_mean_in_any_order(device, V):
+    """H_ref of Eq. (5) (``reference_mean``) is the float64 mean of H rounded once to float32, for sizes below, at and
+    far above its partial count, and a permutation of H (what a different thread timing does to an atomic sum on
+    CUDA) gives the same bits. The atomic float32 sum it replaced missed the rounded float64 mean at V = 100,003."""
+    rng = np.random.default_rng(V)
+    h = (rng.standard_normal(V) * np.exp(rng.uniform(-4, 4, V)) + 0.3).astype(np.float32)
+    expected = np.float32(h.astype(np.float64).sum() / V)
+    got = []
+    for values in (h, h[rng.permutation(V)], h[::-1].copy()):
+        out = wp.zeros(1, dtype=wp.float32, device=device)
+        flow_mod.reference_mean(wp.array(values, dtype=wp.float32, device=device), out)
+        got.append(out.numpy()[0])
+    assert got[0] == expected, (got[0], expected)
+    assert got[1] == got[0] and got[2] == got[0]
+
+
+def test_reference_mean_adjoint(device):
+    """Recorded on a tape, ``reference_mean`` passes ``d out / d H_k = 1 / V`` back to every H_k (added to what
+    H.grad held)."""
+    V = 1000
+    H = wp.array(np.linspace(-1, 2, V, dtype=np.float32), dtype=wp.float32, device=device, requires_grad=True)
+    H.grad.fill_(0.5)
+    out = wp.zeros(1, dtype=wp.float32, device=device, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        flow_mod.reference_mean(H, out, tape=tape)
+    tape.backward(grads={out: wp.array([3.0], dtype=wp.float32, device=device)})
+    np.testing.assert_allclose(H.grad.numpy(), 0.5 + 3.0 / V, rtol=1e-6)
+
+
+def test_local_edge_length_against_trimesh(shape):
+    """The per-vertex mean incident edge length that clamps each move of Eq. (5) equals trimesh's unique edges
+    averaged per vertex in float64."""
+    tm = trimesh.Trimesh(shape.vertices, shape.faces, process=False)
+    e = tm.edges_unique
+    length = np.linalg.norm(tm.vertices[e[:, 1]] - tm.vertices[e[:, 0]], axis=1)
+    total = np.zeros(len(tm.vertices))
+    count = np.zeros(len(tm.vertices))
+    for k in range(2):
+        np.add.at(total, e[:, k], length)
+        np.add.at(count, e[:, k], 1)
+    np.testing.assert_allclose(flow_mod._local_edge_length(shape), total / count, rtol=1e-6)
+
+
 def test_flow_batch_two_processes_split_without_overlap(tmp_path):
-    """`flow-batch` under torchrun with 2 gloo processes gives every mesh to exactly one rank; a re-run skips all."""
+    """`flow-batch` under torchrun with 2 gloo processes gives every mesh to exactly one rank, records the device of
+    each, and writes the same stage files, bit for bit, as one process; a re-run skips all."""
+    from vnc_warp.cli import main
+
     src = tmp_path / "in"
     src.mkdir()
     for s in range(3):
         random_shape(s, subdivisions=2).save(src / f"shape{s}.obj")
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29571", "-m", "vnc_warp.cli",
-           "flow-batch", str(src), str(tmp_path / "out"), "--stages", "1", "--device", "cpu", "--no-progress"]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29571", "-m",
+           "vnc_warp.cli", "flow-batch", str(src), str(tmp_path / "out"), "--stages", "1", "--device", "cpu",
+           "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     subprocess.run(cmd, check=True, env=env, capture_output=True, timeout=300)
     batch = json.loads((tmp_path / "out" / "batch.json").read_text())
@@ -223,9 +273,17 @@ def test_flow_batch_two_processes_split_without_overlap(tmp_path):
     names = [m["mesh"] for m in batch["meshes"]]
     assert sorted(names) == ["shape0.obj", "shape1.obj", "shape2.obj"]
     ranks = {m["mesh"]: m["rank"] for m in batch["meshes"]}
-    assert set(ranks.values()) == {0, 1}
+    assert ranks == {"shape0.obj": 0, "shape1.obj": 1, "shape2.obj": 0}
+    assert {m["device"] for m in batch["meshes"]} == {"cpu"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["flow-batch", str(src), str(tmp_path / "one"), "--stages", "1", "--device", "cpu",
+                     "--no-progress"]) == 0
     for s in range(3):
-        assert Trajectory.load(tmp_path / "out" / f"shape{s}").complete
+        two = Trajectory.load(tmp_path / "out" / f"shape{s}.obj")
+        one = Trajectory.load(tmp_path / "one" / f"shape{s}.obj")
+        assert two.complete
+        assert [st.sha256 for st in two.stages] == [st.sha256 for st in one.stages]
     subprocess.run(cmd, check=True, env=env, capture_output=True, timeout=300)
     again = json.loads((tmp_path / "out" / "batch.json").read_text())
     assert {m["status"] for m in again["meshes"]} == {"skipped"}
@@ -281,10 +339,11 @@ def test_relative_thickness_of_sphere_and_cylinder():
     assert relative_thickness(vw.load_mesh(cyl), device="cpu") == pytest.approx(expected, rel=0.02)
 
 
-def test_flow_repairs_what_the_first_remesh_can_and_records_it():
+def test_flow_repairs_what_the_first_remesh_can_and_records_it(caplog):
     """A mesh with a non-manifold edge (a fin face), a duplicated face and two overlapping components, which
-    load_mesh refuses, flows: the first remesh repairs it, warns, and the trajectory records the repairs (info and
-    stage 0). Three disjoint spheres are refused (the first remesh would drop two of them) unless allow_changes."""
+    load_mesh refuses, flows: the first remesh repairs it, says so on the ``vnc_warp`` logger, and the trajectory
+    records the repairs (info and stage 0). Three disjoint spheres are refused (the first remesh would drop two of
+    them) unless allow_changes, and then a RemeshWarning says what was dropped."""
     from vnc_warp.remesh import RemeshWarning
 
     a = trimesh.creation.icosphere(3, radius=0.5)
@@ -296,8 +355,12 @@ def test_flow_repairs_what_the_first_remesh_can_and_records_it():
     f = np.vstack([f, [[e0, e1, len(v) - 1]], f[3:4]])
     with pytest.raises(vw.MeshError):
         vw.load_mesh((v, f))
-    with pytest.warns(RemeshWarning, match="repaired the input"):
-        traj = flow((v, f), stages=1, faces=1000, device="cpu", progress=False)
+    with caplog.at_level("WARNING", logger="vnc_warp"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the single stage's target t = 0 is out of reach
+        traj = flow((v, f), stages=1, faces=1000, device="cpu", progress=False, max_iters=20)
+    said = [r.getMessage() for r in caplog.records if r.name.startswith("vnc_warp")]
+    assert any("repaired the input: 1 non-manifold edge(s), 1 duplicate face(s)" in m for m in said), said
+    assert any("repaired the input" in c for c in traj.info["remesh_changes"])
     repairs = traj.info["repairs"]
     assert repairs["non_manifold_edges"] == 1 and repairs["duplicate_faces"] == 1 and repairs["components"] == 2
     assert traj.records[0]["remesh"]["repairs"] == repairs
@@ -307,7 +370,7 @@ def test_flow_repairs_what_the_first_remesh_can_and_records_it():
     with pytest.raises(vw.MeshError, match="dropped 2"):
         flow(three, stages=1, faces=1000, device="cpu", progress=False)
     with pytest.warns(RemeshWarning, match="dropped 2"):
-        kept = flow(three, stages=1, faces=1000, device="cpu", progress=False, allow_changes=True)
+        kept = flow(three, stages=1, faces=1000, device="cpu", progress=False, allow_changes=True, max_iters=20)
     assert kept.records[0]["remesh"]["dropped_components"] == 2
 
 
@@ -339,3 +402,20 @@ def test_a_dumbbell_neck_does_not_thin():
         warnings.simplefilter("ignore")
         traj = flow(capsules(DUMBBELL, nodes=72), stages=4, faces=3000, device="cpu", progress=False, max_iters=60)
     assert all(rec["thickness_ratio"] >= 0.8 for rec in traj.records[1:]), [r["thickness_ratio"] for r in traj.records]
+
+
+def test_flow_batch_gives_each_rank_its_own_gpu(monkeypatch):
+    """A rank runs on ``cuda:LOCAL_RANK`` (modulo the GPUs) when --device is left out or is a bare ``cuda``; a named
+    device is kept, and without a GPU the default is the CPU. Before, ``--device cuda`` put every rank on GPU 0."""
+    from vnc_warp.commands.flow_batch import rank_device
+
+    monkeypatch.setattr(wp, "is_cuda_available", lambda: True)
+    monkeypatch.setattr(wp, "get_cuda_device_count", lambda: 2)
+    assert [rank_device(None, r) for r in range(3)] == ["cuda:0", "cuda:1", "cuda:0"]
+    assert [rank_device("cuda", r) for r in range(2)] == ["cuda:0", "cuda:1"]
+    assert rank_device("cuda:0", 1) == "cuda:0" and rank_device("cpu", 1) == "cpu"
+    monkeypatch.setattr(wp, "is_cuda_available", lambda: False)
+    monkeypatch.setattr(wp, "get_cuda_device_count", lambda: 0)
+    assert rank_device(None, 1) == "cpu"
+    with pytest.raises(ValueError, match="no CUDA device"):
+        rank_device("cuda", 0)

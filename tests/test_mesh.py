@@ -3,15 +3,21 @@
 import numpy as np
 import pytest
 import trimesh
-from conftest import real_mesh_path
+from conftest import mesh_path, open_scan
 
 import vnc_warp as vw
 
 
 def test_texture_seams_are_merged():
-    """spot.obj stores texture seams as split vertices; after merging it is closed with the documented counts."""
-    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    """trimesh splits spot.obj's vertices at its texture seams (3,225 rows); load_mesh merges them into a closed
+    mesh with the documented counts, and source_index maps every trimesh row to the vertex at its position."""
+    tm = trimesh.load(mesh_path("spot_lowres.obj"), process=False, force="mesh")
+    assert len(tm.vertices) == 3225
+    mesh = vw.load_mesh(tm)
     assert (mesh.num_vertices, mesh.num_faces) == (2930, 5856)
+    assert mesh.source_index.shape == (3225,) and mesh.source_index.min() == 0
+    np.testing.assert_array_equal(mesh.vertices[mesh.source_index], np.asarray(tm.vertices, np.float32))
+    assert vw.load_mesh(mesh_path("spot_lowres.obj")).source_index is None  # the file's own vertices: no map
     assert mesh.is_watertight and mesh.volume() > 0
     assert mesh.vertices.dtype == np.float32 and mesh.faces.dtype == np.int32
     assert mesh.topology.num_interior == 3 * mesh.num_faces // 2
@@ -19,15 +25,15 @@ def test_texture_seams_are_merged():
 
 def test_interior_edge_layout_is_consistent():
     """Each interior edge (a, b, c0, c1) has face (a, b, c0) and face (b, a, c1) in the mesh's winding."""
-    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    mesh = vw.load_mesh(mesh_path("penguin.obj"))
     faces = {tuple(np.roll(f, -i)) for f in mesh.faces.tolist() for i in range(3)}
     for a, b, c0, c1 in mesh.topology.interior[::97].tolist():
         assert (a, b, c0) in faces and (b, a, c1) in faces
 
 
 def test_open_mesh_loads_with_boundary():
-    """A raw scan with holes loads (boundary edges counted, not interior) and is reported as not watertight."""
-    mesh = vw.load_mesh(real_mesh_path("stanford_bunny_open.obj"))
+    """A scan with holes loads (boundary edges counted, not interior) and is reported as not watertight."""
+    mesh = vw.load_mesh(open_scan())
     assert not mesh.is_watertight
     assert mesh.topology.boundary.shape[0] > 0
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import real_mesh_path
+from conftest import mesh_path, open_scan
 
 from vnc_warp.mesh import Mesh, MeshError, load_mesh
 from vnc_warp.remesh import sdf_remesh, validate_surface
@@ -32,7 +32,7 @@ def _check_remeshed(out: Mesh, src: Mesh, target: int, *, closeness: float = 0.1
 
 def test_remesh_spot_keeps_count_area_and_shape(device):
     """spot_lowres: same face count and area, closed outward manifold, close to the input, same volume."""
-    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    src = load_mesh(mesh_path("spot_lowres.obj"))
     out = sdf_remesh(src, device=device)
     tm = _check_remeshed(out, src, src.num_faces)
     assert tm.euler_number == 2
@@ -41,18 +41,16 @@ def test_remesh_spot_keeps_count_area_and_shape(device):
 
 def test_remesh_torus_keeps_genus(device):
     """torus.obj: genus 1 stays genus 1 (Euler characteristic V - E + F = 0)."""
-    src = load_mesh(real_mesh_path("torus.obj"))
+    src = load_mesh(mesh_path("torus.obj"))
     out = sdf_remesh(src, device=device, marching_cubes="warp" if device == "cpu" else "auto")
     tm = _check_remeshed(out, src, src.num_faces)
     assert tm.euler_number == 0
 
 
 def test_remesh_open_scan_closes(device):
-    """The open Stanford bunny scan (holes in its base), decimated to ~5k faces first: a closed, valid
-    surface comes back with the face count and area of the input."""
-    raw = trimesh.load(real_mesh_path("stanford_bunny_open.obj"), process=False, force="mesh")
-    v, f = fast_simplification.simplify(raw.vertices, raw.faces, target_count=5000)
-    src = load_mesh((v, f), name="bunny_open_5k")
+    """An open scan (penguin.obj with its base cut away and a window in its side, :func:`conftest.open_scan`): a
+    closed, valid surface comes back with the face count and area of the input."""
+    src = load_mesh(open_scan(), name="penguin_open")
     assert not src.is_watertight
     out = sdf_remesh(src, device=device)
     # the caps over the holes are new surface: closeness is looser than on closed inputs
@@ -61,7 +59,7 @@ def test_remesh_open_scan_closes(device):
 
 def test_remesh_to_fewer_faces(device):
     """A target face count below the input's is met within 2%, with the area kept."""
-    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    src = load_mesh(mesh_path("spot_lowres.obj"))
     out = sdf_remesh(src, faces=2500, device=device)
     tm = _check_remeshed(out, src, 2500, closeness=0.3)
     assert tm.euler_number == 2
@@ -69,7 +67,7 @@ def test_remesh_to_fewer_faces(device):
 
 def test_remesh_raises_when_resolution_too_low():
     """A grid too coarse for the requested face count raises instead of returning a short mesh."""
-    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    src = load_mesh(mesh_path("spot_lowres.obj"))
     with pytest.raises(MeshError, match="fewer than"):
         sdf_remesh(src, faces=2 * src.num_faces, resolution=12, device="cpu")
     with pytest.raises(ValueError, match="marching_cubes"):
@@ -92,7 +90,7 @@ def test_regularization_evens_out_spot(device):
     decimated surface by more than half (measured 0.43 -> 0.11), lifts the 1st percentile of the smallest face
     angle above 25 degrees (from about 3), folds no edge (dihedral angles stay below 135 degrees), keeps the
     decimation's vertex and face counts exactly, and stays valid, area-preserving and on the input surface."""
-    src = load_mesh(real_mesh_path("spot_lowres.obj"))
+    src = load_mesh(mesh_path("spot_lowres.obj"))
     raw = sdf_remesh(src, device=device, relax_iterations=0).to_trimesh()
     out = sdf_remesh(src, device=device)
     tm = _check_remeshed(out, src, src.num_faces, closeness=0.08)
@@ -109,7 +107,7 @@ def test_regularization_evens_out_spot(device):
 def test_zero_relax_iterations_returns_the_decimation(monkeypatch):
     """relax_iterations=0 is the remesher without regularization: the output is the decimated surface itself,
     outward-wound and scaled about its area centroid to the input's area (recomputed here with trimesh)."""
-    src = load_mesh(real_mesh_path("torus.obj"))
+    src = load_mesh(mesh_path("torus.obj"))
     real = fast_simplification.simplify
     decimated = []
 
@@ -162,7 +160,7 @@ def test_regularizer_refuses_non_manifold_surfaces():
 def test_remesh_retries_and_never_returns_a_broken_surface(monkeypatch):
     """A decimation that breaks the surface (here: one face flipped) is retried; if every attempt
     breaks it, MeshError is raised instead of returning the mesh."""
-    src = load_mesh(real_mesh_path("torus.obj"))
+    src = load_mesh(mesh_path("torus.obj"))
     real = fast_simplification.simplify
     calls = []
     broken = {"first": 1}  # how many decimations come back broken

@@ -94,3 +94,37 @@ def test_shape_family():
     assert np.abs(fam[0].vertices - fam[1].vertices).max() > 0.05
     with pytest.raises(ValueError, match="n must be"):
         shape_family(0, 1)
+
+
+def test_humanoids_are_closed_genus0_bodies():
+    """Humanoids (the C-VAE's body domain): watertight, one component, Euler characteristic 2, outward, 1.5-2 m
+    tall standing on y ~ 0, a pure function of the seed; the SDF is negative in the pelvis and positive far away."""
+    from vnc_warp.shapes import humanoid, humanoid_family, humanoid_sdf
+
+    bodies = humanoid_family(3, 7, voxel=0.03)
+    for m in bodies:
+        assert m.is_watertight and m.volume() > 0.0
+        assert m.num_vertices - m.topology.edges.shape[0] + m.num_faces == 2
+        assert len(m.to_trimesh().split(only_watertight=False)) == 1
+        lo, hi = m.vertices.min(0), m.vertices.max(0)
+        assert -0.1 < lo[1] < 0.05 and 1.45 < hi[1] < 2.6  # raised hands may reach above the head
+    again = humanoid(int(np.random.SeedSequence([7, 1]).generate_state(1, np.uint64)[0] >> np.uint64(1)), voxel=0.03)
+    assert np.array_equal(again.vertices, bodies[1].vertices)
+    assert not np.array_equal(bodies[0].vertices[:50], bodies[2].vertices[:50])
+    d = humanoid_sdf(np.array([[0.0, 0.9, 0.0], [3.0, 1.0, 0.0]]), 5)
+    assert d[0] < -0.05 and d[1] > 2.0
+
+
+def test_humanoid_poses_cover_the_range():
+    """Over 60 bodies the arms go from along the body (hand below the shoulder) to overhead (hand above the head)
+    and the legs from together to apart (feet more than 0.4 m apart)."""
+    from vnc_warp.shapes import _body_plan, family_seeds
+
+    hands, feet = [], []
+    for seed in family_seeds(60, 3):
+        plan = _body_plan(seed)
+        ell = {name: c for name, c, _, _ in plan["ellipsoids"]}
+        hands.append(ell["hand+1"][1] - plan["height"] * 0.81)
+        feet.append(abs(ell["foot+1"][0] - ell["foot-1"][0]))
+    assert min(hands) < -0.4 and max(hands) > 0.45
+    assert min(feet) < 0.3 and max(feet) > 0.4

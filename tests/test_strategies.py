@@ -7,7 +7,7 @@ import pytest
 import torch
 import trimesh
 import warp as wp
-from conftest import real_mesh_path
+from conftest import mesh_path
 from reference import dense_ball_sums, dense_soft
 
 import vnc_warp as vw
@@ -128,7 +128,7 @@ def test_strategies_agree_with_cuda_launch_shape(cuda_launch_shape, spread, monk
 @pytest.mark.parametrize("kappa", [6.0, None])
 def test_hard_matches_dense_float64_every_strategy(strategy, kappa, device):
     """Eq. (2) from every strategy equals the float64 dense reference on trimesh's exact segment/ball lengths."""
-    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    mesh = vw.load_mesh(mesh_path("penguin.obj"))
     idx = np.arange(0, mesh.num_vertices, 11)
     for tau in (3.0 * mesh.mean_edge_length, 0.6 * mesh.bbox_diagonal):
         H = vw.vnc_hard(mesh, tau, kappa=kappa, device=device, strategy=strategy)[0].numpy()
@@ -548,7 +548,7 @@ def test_threads_with_far_apart_balls(cuda_launch_shape, device):
     """Ball centres in two clusters at opposite ends of a mesh, so that one thread holds queries from both (its box
     would span the mesh): it walks each ball's box in turn, and Eq. (1) still equals trimesh's measure, every edge
     counted once per ball."""
-    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    mesh = vw.load_mesh(mesh_path("spot_lowres.obj"))
     tm = mesh.to_trimesh()
     v = mesh.vertices
     ends = [np.argmin(v[:, 2]), np.argmax(v[:, 2])]
@@ -565,7 +565,7 @@ def test_threads_with_far_apart_balls(cuda_launch_shape, device):
 def test_integrated_mean_curvature_every_strategy(strategy, device):
     """Eq. (1) at off-surface centres with per-point radii (some centres outside the mesh's box) equals trimesh
     for every strategy."""
-    mesh = vw.load_mesh(real_mesh_path("spot_lowres.obj"))
+    mesh = vw.load_mesh(mesh_path("spot_lowres.obj"))
     tm = mesh.to_trimesh()
     rng = np.random.default_rng(5)
     pts = mesh.vertices[rng.choice(mesh.num_vertices, 30, replace=False)] * 1.05
@@ -614,7 +614,7 @@ def test_gradient_every_strategy(strategy, cuda_launch_shape, device):
 
 def test_cell_index_matches_numpy(device):
     """The cell list (sorted sources and first[] offsets) equals a NumPy sort of the same cell indices."""
-    mesh = vw.load_mesh(real_mesh_path("bunny.obj"))
+    mesh = vw.load_mesh(mesh_path("penguin.obj"))
     pts = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     b = _pairs.bounds(pts, wp.full(mesh.num_vertices, 0.1, dtype=wp.float32, device=device))
     h = 3.0 * mesh.mean_edge_length
@@ -693,7 +693,7 @@ def test_row_cells_of_a_ball_match_float64(device):
 def test_auto_choice_and_bad_strategy(device):
     """"auto" prunes with the grid at small scales and reads all pairs when every ball covers the mesh; an unknown
     strategy is rejected with the list of valid ones."""
-    mesh = vw.load_mesh(real_mesh_path("fandisk.obj"))
+    mesh = vw.load_mesh(mesh_path("wingnut.obj"))
     assert vw.choose_strategy(mesh, 3.0 * mesh.mean_edge_length, device=device) == "grid"
     assert vw.choose_strategy(mesh, 3.0 * mesh.mean_edge_length, variant="hard", device=device) == "grid"
     assert vw.choose_strategy(mesh, 2.0 * mesh.bbox_diagonal, device=device) == "dense"

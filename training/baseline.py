@@ -27,7 +27,7 @@ import torch
 from vnc_warp.mesh import Mesh
 
 from .data import normalization, read_trajectory
-from .inference import _check_times, decode_sdf_grid, extract_mesh, surface_condition, write_predictions
+from .inference import _check_times, extract_mesh, sdf_grid_tensor, surface_condition, write_predictions
 
 __all__ = ["interpolation_alpha", "interpolate_latents", "encode_surface", "LatentInterpolation",
            "latent_interpolation"]
@@ -124,7 +124,7 @@ class LatentInterpolation:
         Raises:
             ValueError: the decoded SDF has no zero crossing on the grid.
         """
-        sdf = decode_sdf_grid(self.model, self.latent(t), resolution=resolution)
+        sdf = sdf_grid_tensor(self.model, self.latent(t), resolution=resolution)
         return extract_mesh(sdf, center=self.center, scale=self.scale, name=name)
 
 

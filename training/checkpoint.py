@@ -6,7 +6,11 @@ A checkpoint is a dict::
      "config": TrainConfig.to_dict(), "model": state_dict,
      "optimizer": state_dict | None, "scheduler": state_dict | None,
      "step": int, "epoch": int, "batch_in_epoch": int, "world_size": int,
-     "rng": [per-rank {"torch", "cuda", "numpy", "python"}] | None}
+     "rng": [per-rank {"torch", "cuda", "numpy", "python"}] | None,
+     "window": [per-rank {"sums": [5 floats], "steps": int}] | None}
+
+``window`` (the loss sums of the log window under way, so that a resumed run logs the rows an uninterrupted
+one would) is absent from checkpoints written before it existed; they load all the same.
 
 Writes are atomic (temporary file in the same folder, then ``os.replace``), so a run killed while
 saving leaves the previous checkpoint intact.
@@ -15,7 +19,9 @@ saving leaves the previous checkpoint intact.
 from __future__ import annotations
 
 import os
+import pickle
 import random
+import re
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +76,8 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, config: TrainConfig, step: int,
                     optimizer: torch.optim.Optimizer | None = None, scheduler: Any | None = None, epoch: int = 0,
-                    batch_in_epoch: int = 0, world_size: int = 1, rng: list[dict[str, Any]] | None = None) -> Path:
+                    batch_in_epoch: int = 0, world_size: int = 1, rng: list[dict[str, Any]] | None = None,
+                    window: list[dict[str, Any]] | None = None) -> Path:
     """Write a checkpoint atomically (``path.tmp`` then ``os.replace``).
 
     Args:
@@ -82,6 +89,7 @@ def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, config: TrainC
         epoch, batch_in_epoch: data-loader position (batches of ``epoch`` already consumed).
         world_size: processes of the run.
         rng: per-rank :func:`rng_state` dicts.
+        window: per-rank loss sums of the log window under way (``{"sums": [...], "steps": n}``).
 
     Returns:
         The checkpoint path.
@@ -100,6 +108,7 @@ def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, config: TrainC
         "batch_in_epoch": int(batch_in_epoch),
         "world_size": int(world_size),
         "rng": rng,
+        "window": window,
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
@@ -124,8 +133,12 @@ def load_checkpoint(path: str | os.PathLike, *, map_location: str | torch.device
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(f"{path}: cannot read checkpoint: not a vnc-warp checkpoint ({_torch_reason(exc)}); "
+                              "one holds only tensors and plain values, and nothing else is ever loaded") from None
     except Exception as exc:  # torch raises several types for truncated or foreign files
-        raise CheckpointError(f"{path}: cannot read checkpoint ({type(exc).__name__}: {exc})") from exc
+        raise CheckpointError(f"{path}: cannot read checkpoint, truncated or not a torch file "
+                              f"({type(exc).__name__}: {_torch_reason(exc)})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a vnc-warp checkpoint (no format={FORMAT!r} entry)")
     if state.get("version") != VERSION:
@@ -134,6 +147,19 @@ def load_checkpoint(path: str | os.PathLike, *, map_location: str | torch.device
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}")
     return state
+
+
+def _torch_reason(exc: BaseException) -> str:
+    """The part of torch's message that says what is wrong with the file, without its advice: torch suggests
+    loading with ``weights_only=False``, which runs whatever code the file holds."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    keep = [line for line in lines if not _ADVICE.search(line)]
+    text = " ".join(keep) or type(exc).__name__
+    first = text.split(". ")[0]
+    return first[:300]
+
+
+_ADVICE = re.compile(r"weights.only|torch\.load|file an issue|documentation|trusted source|likely succeed", re.I)
 
 
 def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> tuple[nn.Module, TrainConfig]:

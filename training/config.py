@@ -60,7 +60,14 @@ class ModelConfig:
         chunk_size: queries decoded per chunk by the query decoder.
         time_tokens: tokens the time embedding produces (C-VAE-I and C-VAE-II).
         time_freq_dim: width of the sinusoidal time features.
+        time_scale: radians per unit of t of the fastest time feature: small enough that neighbouring stages get
+            nearly the same features, so that a t between the stages trained on is an interpolation.
         modulator_depth: cross-attention blocks of the C-VAE-II latent modulator.
+        logvar_init: initial log-variance of the posterior (the bias of the bottleneck's log-variance half, and of
+            C-VAE-II's z_ctl): training decodes posterior samples, inference the mean, and both must see the
+            same codes from the start (see :class:`~vnc_warp.training.model.KLBottleneck`).
+        sdf_init: the SDF an untrained decoder predicts everywhere (the bias of its zero-weight head); the TSDF
+            truncation starts from empty space, 0 from a surface everywhere.
         pretrained: C-VAE-II only: path of the plain VAE checkpoint whose encoder is frozen.
     """
 
@@ -79,43 +86,57 @@ class ModelConfig:
     chunk_size: int = 32768
     time_tokens: int = 4
     time_freq_dim: int = 256
+    time_scale: float = 10.0
     modulator_depth: int = 2
+    logvar_init: float = -8.0
+    sdf_init: float = 0.0
     pretrained: str | None = None
 
     def backbone_kwargs(self) -> dict[str, Any]:
         """Constructor arguments of :class:`~vnc_warp.training.model.VecSetVAE` (no time branch)."""
         names = ("width", "heads", "num_latents", "latent_dim", "encoder_depth", "decoder_depth", "num_freqs",
-                 "include_pi", "mlp_ratio", "qkv_bias", "qk_norm", "chunk_size")
+                 "include_pi", "mlp_ratio", "qkv_bias", "qk_norm", "chunk_size", "logvar_init", "sdf_init")
         return {n: getattr(self, n) for n in names}
 
 
 @dataclass
 class LossConfig:
-    """Weights of L = L_tsdf + beta_kl L_kl + lambda_eik L_eik (Sec. 3.3).
+    """Weights of L = L_tsdf + beta_kl L_kl + lambda_eik L_eik (Sec. 3.3) + L_surf + L_normal.
 
-    ``kl_schedule="linear"`` is the beta_kl curriculum used for C-VAE-I: beta rises linearly from
-    ``kl_weight_start`` at step ``kl_warmup_start`` to ``kl_weight`` at ``kl_warmup_start + kl_warmup_steps``.
+    The beta_kl curriculum (:func:`~vnc_warp.training.losses.kl_weights`): over steps, ``kl_schedule="linear"``
+    raises beta linearly from ``kl_weight_start`` at step ``kl_warmup_start`` to ``kl_weight`` at
+    ``kl_warmup_start + kl_warmup_steps``; over the normalized time, the KL's prior contracts from N(0, I) at
+    t = 1 to N(0, I / kl_time_ratio) at t = 0 (:func:`~vnc_warp.training.losses.kl_prior_logvar`; C-VAE-I: codes
+    of t -> 0 pulled toward the origin).
 
     Attributes:
         tsdf: ``"l1"`` or ``"mse"`` on the truncated SDF.
+        near_weight: weight of the near-surface queries in L_tsdf (a weighted mean; 1: plain mean).
         kl_weight: beta_kl (final value when scheduled).
         kl_schedule: ``"constant"`` or ``"linear"``.
         kl_weight_start: beta_kl before and at the start of the warm-up.
         kl_warmup_start: first step of the warm-up.
         kl_warmup_steps: length of the warm-up in steps.
-        eikonal_weight: lambda_eik; 0 skips the gradient computation.
+        kl_time_ratio: precision of the KL's prior at t = 0 over that at t = 1 (>= 1; 1: t-independent).
+        eikonal_weight: lambda_eik; 0 skips it.
         eikonal_queries: queries per item, near-surface ones first, decoded a second time with input
             gradients for L_eik (its double backward needs the unfused attention kernel, so it is kept small).
+        surface_weight: weight of L_surf = mean |f| at points on the item's surface (``data.num_on_surface``).
+        normal_weight: weight of L_normal = mean (1 - cos(grad f, n)) at the same points.
     """
 
     tsdf: str = "l1"
+    near_weight: float = 1.0
     kl_weight: float = 1e-3
     kl_schedule: str = "constant"
     kl_weight_start: float = 0.0
     kl_warmup_start: int = 0
     kl_warmup_steps: int = 0
+    kl_time_ratio: float = 1.0
     eikonal_weight: float = 0.01
     eikonal_queries: int = 2048
+    surface_weight: float = 0.0
+    normal_weight: float = 0.0
 
 
 @dataclass
@@ -150,6 +171,11 @@ class DataConfig:
     Attributes:
         num_surface: surface points (xyz + normal) per item, the encoder input.
         num_queries: SDF queries per item.
+        near_fraction: share of the queries drawn near the surface (the rest are uniform in the box).
+        num_on_surface: points (xyz + normal) on the item's own surface per item, for L_surf and L_normal
+            (0: none).
+        fresh_fraction: share of the far queries drawn afresh for every item and labelled from the stage's TSDF
+            grid (a dataset built with a grid; see :class:`~vnc_warp.training.data.TrajectoryDataset`).
         batch_size: items per step per process.
         num_workers: DataLoader worker processes.
         encoder_input: ``"stage0"``: the encoder sees the surface of the trajectory's stage 0 (t = 1,
@@ -159,6 +185,9 @@ class DataConfig:
 
     num_surface: int = 8192
     num_queries: int = 8192
+    near_fraction: float = 0.5
+    num_on_surface: int = 0
+    fresh_fraction: float = 0.0
     batch_size: int = 8
     num_workers: int = 4
     encoder_input: str = "stage0"
@@ -223,7 +252,9 @@ class TrainConfig:
         for key, value in [("model.encoder_depth", m.encoder_depth), ("model.decoder_depth", m.decoder_depth),
                            ("loss.kl_weight", lo.kl_weight), ("loss.kl_weight_start", lo.kl_weight_start),
                            ("loss.kl_warmup_start", lo.kl_warmup_start), ("loss.kl_warmup_steps", lo.kl_warmup_steps),
-                           ("loss.eikonal_weight", lo.eikonal_weight), ("optim.weight_decay", o.weight_decay),
+                           ("loss.eikonal_weight", lo.eikonal_weight), ("loss.surface_weight", lo.surface_weight),
+                           ("loss.normal_weight", lo.normal_weight), ("loss.near_weight", lo.near_weight),
+                           ("data.num_on_surface", d.num_on_surface), ("optim.weight_decay", o.weight_decay),
                            ("optim.warmup_steps", o.warmup_steps), ("optim.grad_clip", o.grad_clip),
                            ("data.num_workers", d.num_workers)]:
             if value < 0:
@@ -232,6 +263,8 @@ class TrainConfig:
             raise ValueError(f"model.width ({m.width}) must be a multiple of model.heads ({m.heads})")
         if (m.width // m.heads) % 2:
             raise ValueError(f"model.width / model.heads must be even, got {m.width // m.heads}")
+        if not m.time_scale > 0:
+            raise ValueError(f"model.time_scale must be > 0, got {m.time_scale}")
         if m.time_freq_dim % 2:
             raise ValueError(f"model.time_freq_dim must be even, got {m.time_freq_dim}")
         if m.kind in ("cvae1", "cvae2") and m.time_tokens < 1:
@@ -245,6 +278,16 @@ class TrainConfig:
             raise ValueError(f"data.encoder_input must be 'stage0' or 'item', got {d.encoder_input!r}")
         if lo.tsdf not in ("l1", "mse"):
             raise ValueError(f"loss.tsdf must be 'l1' or 'mse', got {lo.tsdf!r}")
+        if not lo.kl_time_ratio >= 1.0:
+            raise ValueError(f"loss.kl_time_ratio must be >= 1 (prior precision at t = 0 over t = 1), "
+                             f"got {lo.kl_time_ratio}")
+        if not 0.0 <= d.near_fraction <= 1.0:
+            raise ValueError(f"data.near_fraction must be in [0, 1], got {d.near_fraction}")
+        if not 0.0 <= d.fresh_fraction <= 1.0:
+            raise ValueError(f"data.fresh_fraction must be in [0, 1], got {d.fresh_fraction}")
+        if (lo.surface_weight > 0 or lo.normal_weight > 0) and d.num_on_surface < 1:
+            raise ValueError("loss.surface_weight / loss.normal_weight need data.num_on_surface >= 1 points on "
+                             "each item's surface")
         if lo.kl_schedule not in ("constant", "linear"):
             raise ValueError(f"loss.kl_schedule must be 'constant' or 'linear', got {lo.kl_schedule!r}")
         if not o.lr > 0:

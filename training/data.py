@@ -1,13 +1,14 @@
 """Truncated-SDF training data from VNC-Flow trajectories (Sec. 3.3, trained with L_tsdf).
 
-A trajectory directory (written by VNC-Flow, Algorithm 1) holds ``manifest.json`` =
-``{"format": "vnc-warp-trajectory/1", "stages": [{"index": i, "t": t, "file": "stage_000.ply"}, ...]}``
-with stage 0 at ``t = 1`` (Eq. (7)); only the stages listed count. :func:`build_dataset` samples every
+A trajectory directory (written by VNC-Flow, Algorithm 1) holds stage meshes and the ``manifest.json`` that
+lists them with their times and checksums, stage 0 at ``t = 1`` (Eq. (7)); it is read through
+:mod:`vnc_warp.trajectory` (the one trajectory format), which refuses damaged or foreign stage files, and only
+the stages listed count. :func:`build_dataset` samples every
 stage once into ``<out>/<shape>/stage_<index>.npz`` and writes ``<out>/index.json``; every stage of a
 trajectory shares the normalization of its stage 0 (``x_norm = (x - center) * scale`` with
 ``center`` the bounding-box centre and ``scale = 1.8 / max extent``), so ``t`` is the only thing that
 changes along a trajectory. :class:`TrajectoryDataset` reads the samples, checks each file against
-its SHA-256 in the index, and draws random subsets per item.
+its SHA-256 in the index and its arrays for finiteness, and draws random subsets per item.
 
 Sample file keys: ``surface`` (Ns, 6) float32 xyz + unit normal, ``queries`` (Nq, 3) float32,
 ``tsdf`` (Nq,) float32 in [-truncation, truncation] (negative inside), ``near`` (Nq,) bool (query drawn
@@ -22,7 +23,6 @@ import json
 import os
 import warnings
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,14 +31,18 @@ import torch
 import warp as wp
 
 from vnc_warp._device import get_device
-from vnc_warp.mesh import Mesh, MeshError, load_mesh
+from vnc_warp._files import output_dir
+from vnc_warp.mesh import Mesh, MeshError
 from vnc_warp.sdf import signed_distance
+from vnc_warp.trajectory import FORMAT as TRAJECTORY_FORMAT
+from vnc_warp.trajectory import Trajectory, TrajectoryError, TrajectoryStage, read_trajectory
 
 __all__ = [
     "DATASET_FORMAT",
     "TRAJECTORY_FORMAT",
     "DatasetError",
     "Trajectory",
+    "TrajectoryError",
     "TrajectoryStage",
     "TrajectoryDataset",
     "build_dataset",
@@ -48,79 +52,12 @@ __all__ = [
     "verify_dataset",
 ]
 
-TRAJECTORY_FORMAT = "vnc-warp-trajectory/1"
 DATASET_FORMAT = "vnc-warp-tsdf/1"
 _SAMPLE_KEYS = ("surface", "queries", "tsdf", "near", "t", "config")
 
 
 class DatasetError(ValueError):
     """A dataset or trajectory that cannot be used; the message names the file and what is wrong."""
-
-
-@dataclass(frozen=True)
-class TrajectoryStage:
-    """One finished stage of a trajectory: stage ``index``, normalized time ``t`` (Eq. (7)), mesh file."""
-
-    index: int
-    t: float
-    path: Path
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """A VNC-Flow trajectory read from its manifest; ``stages[0]`` is stage 0 (``t = 1``)."""
-
-    root: Path
-    name: str
-    source: str
-    stages: tuple[TrajectoryStage, ...]
-
-    def load_stage(self, position: int) -> Mesh:
-        """The mesh of ``stages[position]``."""
-        st = self.stages[position]
-        return load_mesh(st.path, name=f"{self.name}/{st.path.name}")
-
-
-def read_trajectory(traj_dir: str | os.PathLike) -> Trajectory:
-    """Read a trajectory manifest; the shape name is the directory name.
-
-    Raises:
-        FileNotFoundError: no ``manifest.json`` or a listed stage file is missing.
-        DatasetError: unreadable manifest, wrong format string, no stages, missing stage 0,
-            missing/duplicate stage keys or non-finite ``t``.
-    """
-    root = Path(traj_dir).resolve()
-    path = root / "manifest.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"trajectory manifest not found: {path}")
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: unreadable manifest ({exc})") from exc
-    if not isinstance(manifest, dict) or manifest.get("format") != TRAJECTORY_FORMAT:
-        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise DatasetError(f"{path}: format must be {TRAJECTORY_FORMAT!r}, got {got!r}")
-    raw = manifest.get("stages")
-    if not isinstance(raw, list) or not raw:
-        raise DatasetError(f"{path}: no finished stages listed")
-    stages = []
-    for k, st in enumerate(raw):
-        if not isinstance(st, dict) or not {"index", "t", "file"} <= st.keys():
-            raise DatasetError(f"{path}: stages[{k}] needs keys 'index', 't' and 'file', got {st!r}")
-        t = float(st["t"])
-        if not np.isfinite(t):
-            raise DatasetError(f"{path}: stages[{k}] has non-finite t = {st['t']!r}")
-        file = root / st["file"]
-        if not file.is_file():
-            raise FileNotFoundError(f"{path}: stages[{k}] lists {st['file']!r}, which does not exist")
-        stages.append(TrajectoryStage(int(st["index"]), t, file))
-    stages.sort(key=lambda s: s.index)
-    indices = [s.index for s in stages]
-    if len(set(indices)) != len(indices):
-        raise DatasetError(f"{path}: duplicate stage indices {indices}")
-    if indices[0] != 0:
-        raise DatasetError(f"{path}: stage 0 is not listed (stages {indices}); its normalization is needed")
-    return Trajectory(root, root.name, str(manifest.get("source", "")), tuple(stages))
 
 
 def normalization(mesh: Mesh) -> tuple[np.ndarray, float]:
@@ -189,7 +126,19 @@ def _read_sample(path: Path, expected_sha: str | None = None) -> dict[str, np.nd
             or near.dtype != np.bool_):
         raise DatasetError(f"{path}: bad array shapes/dtypes: surface {s.shape} {s.dtype}, queries {q.shape} "
                            f"{q.dtype}, tsdf {d.shape} {d.dtype}, near {near.shape} {near.dtype}")
+    grid = arrays.get("grid")
+    if grid is not None and (grid.ndim != 3 or len(set(grid.shape)) != 1 or grid.dtype != np.float32):
+        raise DatasetError(f"{path}: bad TSDF grid {grid.shape} {grid.dtype}, expected (R, R, R) float32")
+    _check_finite(arrays, path)
     return arrays
+
+
+def _check_finite(arrays: dict[str, np.ndarray], where) -> None:
+    """Refuse NaN or infinite values: one would make every loss it enters NaN, silently, until the end of a run."""
+    for key in ("surface", "queries", "tsdf", "t", *(("grid",) if "grid" in arrays else ())):
+        bad = int(np.size(arrays[key]) - np.count_nonzero(np.isfinite(arrays[key])))
+        if bad:
+            raise DatasetError(f"{where}: {bad} non-finite value(s) (NaN or infinite) in {key!r}")
 
 
 def _write_sample(path: Path, arrays: dict[str, np.ndarray]) -> str:
@@ -221,28 +170,50 @@ def _read_index(root: Path) -> dict:
     return index
 
 
+def _near_points(mesh: Mesh, count: int, noise: Sequence[float], rng: np.random.Generator) -> list[np.ndarray]:
+    """``count`` surface points displaced by Gaussian noise, split evenly over the ``noise`` levels."""
+    per_level = np.diff(np.linspace(0, count, len(noise) + 1).round().astype(int))
+    parts = []
+    for sigma, n in zip(noise, per_level):
+        pts, _ = sample_surface(mesh, int(n), rng)
+        parts.append(pts + rng.normal(0.0, sigma, size=pts.shape))
+    return parts
+
+
 def _sample_stage(mesh: Mesh, rng: np.random.Generator, *, num_surface: int, num_uniform: int, num_near: int,
-                  noise: Sequence[float], truncation: float, device: wp.context.Device) -> dict[str, np.ndarray]:
-    """Surface points, queries and truncated signed distances of one normalized stage mesh."""
+                  noise: Sequence[float], truncation: float, device: wp.context.Device, reference: Mesh | None = None,
+                  num_reference: int = 0, grid_resolution: int = 0) -> dict[str, np.ndarray]:
+    """Surface points, queries and truncated signed distances of one normalized stage mesh.
+
+    Queries: ``num_uniform`` uniform in the box and ``num_reference`` near ``reference`` (the trajectory's
+    stage 0), both flagged far; then ``num_near`` near the stage's own surface, flagged near. With
+    ``grid_resolution`` R, also ``grid``: the TSDF at the nodes of ``linspace(-1, 1, R)^3``, indexed [x, y, z].
+    """
     surf, normals = sample_surface(mesh, num_surface, rng)
     parts = [rng.uniform(-1.0, 1.0, size=(num_uniform, 3))]
-    per_level = np.diff(np.linspace(0, num_near, len(noise) + 1).round().astype(int))
-    for sigma, count in zip(noise, per_level):
-        pts, _ = sample_surface(mesh, int(count), rng)
-        parts.append(pts + rng.normal(0.0, sigma, size=pts.shape))
+    if num_reference:
+        parts += _near_points(reference, num_reference, noise, rng)
+    far = sum(len(p) for p in parts)
+    parts += _near_points(mesh, num_near, noise, rng)
     queries = np.concatenate(parts).astype(np.float32)
     # The labels stay on the device from Warp to PyTorch: torch in, torch out (no host round trip).
     q = torch.from_numpy(queries).to(wp.device_to_torch(device))
     sd = signed_distance(mesh, q, device=device, max_dist=truncation, sign="winding")
     tsdf = torch.clamp(sd, -truncation, truncation)
     near = np.zeros(queries.shape[0], dtype=bool)
-    near[num_uniform:] = True
-    return {
+    near[far:] = True
+    arrays = {
         "surface": np.concatenate([surf, normals], axis=1).astype(np.float32),
         "queries": queries,
         "tsdf": tsdf.cpu().numpy(),
         "near": near,
     }
+    if grid_resolution:
+        axis = torch.linspace(-1.0, 1.0, grid_resolution, device=q.device)
+        nodes = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3).contiguous()
+        sd = signed_distance(mesh, nodes, device=device, max_dist=truncation, sign="winding")
+        arrays["grid"] = torch.clamp(sd, -truncation, truncation).reshape((grid_resolution,) * 3).cpu().numpy()
+    return arrays
 
 
 def build_dataset(
@@ -254,6 +225,8 @@ def build_dataset(
     num_near: int = 16384,
     noise: Sequence[float] = (0.005, 0.02),
     truncation: float = 0.1,
+    num_reference: int = 0,
+    grid_resolution: int = 0,
     device=None,
     seed: int = 0,
     overwrite: bool = False,
@@ -262,10 +235,15 @@ def build_dataset(
     """Sample every listed stage of every trajectory into ``out_dir`` (written once, read many times).
 
     Per stage: ``num_surface`` area-weighted surface points with face normals, ``num_uniform`` queries
-    uniform in [-1, 1]^3 and ``num_near`` queries near the surface (surface points plus Gaussian noise,
-    split evenly over the ``noise`` standard deviations), labelled with signed distances
-    (:func:`vnc_warp.sdf.signed_distance`, winding-number sign, negative inside) clamped to
-    ``[-truncation, truncation]``; all lengths in normalized units (see :func:`normalization`).
+    uniform in [-1, 1]^3, ``num_reference`` queries near the trajectory's stage-0 surface and ``num_near``
+    queries near the stage's own surface (surface points plus Gaussian noise, split evenly over the ``noise``
+    standard deviations), labelled with the stage's signed distances (:func:`vnc_warp.sdf.signed_distance`,
+    winding-number sign, negative inside) clamped to ``[-truncation, truncation]``; all lengths in normalized
+    units (see :func:`normalization`). The C-VAEs decode every stage from stage 0's encoding, so the space the
+    detailed input filled and a later stage left is where their remnants of it float; the ``num_reference``
+    queries supervise it. Only the own-surface queries are flagged ``near``. With ``grid_resolution`` R, the
+    TSDF on an R^3 grid over [-1, 1]^3 too, from which items label fresh uniform queries
+    (:class:`TrajectoryDataset`, ``fresh_fraction``), so that the far field is not a fixed set of points.
 
     A stage whose file already exists, loads, matches its checksum in ``index.json`` and was produced
     by the same settings, normalization and stage mesh is skipped; a corrupt or stale one is rebuilt
@@ -275,6 +253,8 @@ def build_dataset(
         traj_dirs: trajectory directories; the directory name is the shape name (must be unique).
         out_dir: dataset directory (created).
         num_surface, num_uniform, num_near: samples per stage.
+        num_reference: queries per stage near the trajectory's stage 0 (flagged far).
+        grid_resolution: nodes per axis of the stored TSDF grid (0: none).
         noise: near-surface noise standard deviations (normalized units), e.g. two levels.
         truncation: TSDF truncation distance (normalized units).
         device: Warp device for the signed distances (None: preferred device).
@@ -288,7 +268,10 @@ def build_dataset(
     Raises:
         ValueError: bad settings, duplicate shape names, or ``out_dir`` built with other settings
             (unless ``overwrite``).
-        DatasetError / FileNotFoundError / MeshError: unusable trajectories (named in the message).
+        DatasetError / TrajectoryError / FileNotFoundError / MeshError: unusable trajectories or samples (named
+            in the message), e.g. stage files their manifest does not own or that fail their checksum, or samples
+            with NaN.
+        OSError: ``out_dir`` cannot be created or written to (checked before anything else).
     """
     from tqdm.auto import tqdm
 
@@ -300,15 +283,22 @@ def build_dataset(
         raise ValueError(f"build_dataset: noise must list positive standard deviations, got {noise}")
     if not truncation > 0.0:
         raise ValueError(f"build_dataset: truncation must be positive, got {truncation}")
+    if num_reference < 0:
+        raise ValueError(f"build_dataset: num_reference must be >= 0, got {num_reference}")
     config = {"num_surface": int(num_surface), "num_uniform": int(num_uniform), "num_near": int(num_near),
               "noise": noise, "truncation": float(truncation), "seed": int(seed)}
+    if num_reference:
+        config["num_reference"] = int(num_reference)
+    if grid_resolution:
+        if grid_resolution < 2:
+            raise ValueError(f"build_dataset: grid_resolution must be 0 or >= 2, got {grid_resolution}")
+        config["grid_resolution"] = int(grid_resolution)
+    out = output_dir(out_dir, what="dataset folder")
     trajs = [read_trajectory(d) for d in traj_dirs]
     names = [tr.name for tr in trajs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"build_dataset: trajectory directory names must be unique, repeated: {dup}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     shapes: dict[str, dict] = {}
     if (out / "index.json").is_file():
         try:
@@ -326,14 +316,16 @@ def build_dataset(
     counts = {"built": 0, "skipped": 0, "rebuilt": 0}
     bar = tqdm(total=sum(len(tr.stages) for tr in trajs), unit="stage", disable=not progress, desc="dataset")
     for tr in trajs:
-        center, scale = normalization(tr.load_stage(0))
+        stage0 = tr.load_stage(0)
+        center, scale = normalization(stage0)
+        reference = stage0.with_vertices((stage0.vertices.astype(np.float64) - center) * scale)
         known = {st["file"]: st.get("sha256") for st in shapes.get(tr.name, {}).get("stages", [])}
         entries = []
         for pos, st in enumerate(tr.stages):
             rel = f"{tr.name}/stage_{st.index:03d}.npz"
             path = out / rel
             stage_config = dict(config, center=center.tolist(), scale=scale, t=st.t, index=st.index,
-                                source_sha256=_sha256(st.path))
+                                source_sha256=st.sha256 or _sha256(st.path))
             sha, stale = None, False
             if path.is_file():
                 try:
@@ -350,9 +342,12 @@ def build_dataset(
                 mesh = mesh.with_vertices((mesh.vertices.astype(np.float64) - center) * scale)
                 rng = np.random.default_rng([int(seed), zlib.crc32(tr.name.encode()), st.index])
                 arrays = _sample_stage(mesh, rng, num_surface=num_surface, num_uniform=num_uniform,
-                                       num_near=num_near, noise=noise, truncation=truncation, device=dev)
+                                       num_near=num_near, noise=noise, truncation=truncation, device=dev,
+                                       reference=reference, num_reference=num_reference,
+                                       grid_resolution=grid_resolution)
                 arrays["t"] = np.float32(st.t)
                 arrays["config"] = np.array(json.dumps(stage_config))
+                _check_finite(arrays, f"{st.path} (sampled for {rel})")
                 sha = _write_sample(path, arrays)
                 counts["rebuilt" if stale else "built"] += 1
             else:
@@ -398,7 +393,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     Item ``i`` is a dict of tensors: ``surface`` (num_surface, 6) float32 xyz + normal, ``queries``
     (num_queries, 3) float32, ``tsdf`` (num_queries,) float32, ``near`` (num_queries,) bool, ``t`` ()
     float32, ``shape_id`` () int64 (position of the shape in :attr:`shape_names`, the same for every
-    split) and ``stage`` () int64. The subsets come from a generator seeded by ``(seed, epoch, i)``,
+    split), ``stage`` () int64 and, with ``num_on_surface > 0``, ``on_surface`` (num_on_surface, 6): another
+    subset of the stage's own surface samples (for the surface and normal terms; ``surface`` may be replaced
+    by stage 0's, :class:`~vnc_warp.training.train.Stage0Input`). The subsets come from a generator seeded by ``(seed, epoch, i)``,
     so items are reproducible, differ across epochs (:meth:`set_epoch`) and are safe in DataLoader
     workers. With ``repeats = k`` every stage appears k times per epoch (item ``i`` is stage
     ``i % n_stages``), each time with its own subsets: small sets then fill a batch, and the
@@ -415,11 +412,17 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         near_fraction: share of near-surface queries per item.
         cache: keep checked arrays in memory after the first read (see :meth:`preload`).
         repeats: passes over the stages per epoch (>= 1).
+        num_on_surface: points of ``on_surface`` per item (0: no such key).
+        fresh_fraction: share of the far (not near-surface) queries drawn afresh, uniform in [-1, 1]^3, for every
+            item and labelled by trilinear interpolation of the stage's TSDF grid (a dataset built with
+            ``grid_resolution``); only points at least half the truncation from the surface are kept, where the
+            interpolation is exact up to the grid's rounding. A fixed pool leaves gaps a decoder can fill with
+            floating surfaces; fresh points close them over the run.
     """
 
     def __init__(self, root: str | os.PathLike, *, num_surface: int = 2048, num_queries: int = 4096,
                  split: str = "train", holdout: Sequence[str] = (), seed: int = 0, near_fraction: float = 0.5,
-                 cache: bool = False, repeats: int = 1):
+                 cache: bool = False, repeats: int = 1, num_on_surface: int = 0, fresh_fraction: float = 0.0):
         self.root = Path(root)
         index = _read_index(self.root)
         if split not in ("train", "test", "all"):
@@ -439,8 +442,16 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         self.items = [(sid, st) for sid, s in enumerate(self.shapes) if keep(s["name"]) for st in s["stages"]]
         if not self.items:
             raise ValueError(f"TrajectoryDataset: split {split!r} of {self.root} is empty (holdout={list(holdout)})")
-        self.num_surface, self.num_queries = int(num_surface), int(num_queries)
+        if int(num_on_surface) < 0:
+            raise ValueError(f"TrajectoryDataset: num_on_surface must be >= 0, got {num_on_surface}")
+        self.num_surface, self.num_queries, self.num_on_surface = int(num_surface), int(num_queries), int(num_on_surface)
         self.num_near = int(round(near_fraction * num_queries))
+        if not 0.0 <= fresh_fraction <= 1.0:
+            raise ValueError(f"TrajectoryDataset: fresh_fraction must be in [0, 1], got {fresh_fraction}")
+        if fresh_fraction and "grid_resolution" not in index.get("config", {}):
+            raise ValueError(f"TrajectoryDataset: fresh_fraction needs a dataset built with a TSDF grid; "
+                             f"{self.root / 'index.json'} has none (build it with grid_resolution > 0)")
+        self.fresh_fraction = float(fresh_fraction)
         self.seed, self.epoch = int(seed), 0
         self._cache: dict[int, dict[str, np.ndarray]] | None = {} if cache else None
 
@@ -450,6 +461,13 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     def item_ids(self) -> list[tuple[int, int]]:
         """``(shape_id, stage)`` of every item, without reading any file."""
         return [(sid, int(st["index"])) for sid, st in self.items] * self.repeats
+
+    def item_file(self, shape_id: int, stage: int) -> str:
+        """The sample file of a shape's stage (for messages that must say where a value came from)."""
+        for st in self.shapes[shape_id]["stages"]:
+            if int(st["index"]) == stage:
+                return str(self.root / st["file"])
+        return f"{self.root}: shape {self.shape_names[shape_id]} stage {stage}"
 
     def preload(self) -> None:
         """Read and check every sample file into the cache now (``cache=True`` only).
@@ -490,14 +508,39 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         near_pool, far_pool = np.flatnonzero(a["near"]), np.flatnonzero(~a["near"])
         n_near = 0 if near_pool.size == 0 else self.num_queries if far_pool.size == 0 else self.num_near
         n_far = self.num_queries - n_near
-        q_idx = np.concatenate([rng.choice(far_pool, n_far, replace=far_pool.size < n_far),
+        fresh_q, fresh_d = self._fresh(a, int(round(self.fresh_fraction * n_far)), float(self.shapes[sid]["truncation"]),
+                                       rng)
+        n_pool = n_far - len(fresh_q)
+        q_idx = np.concatenate([rng.choice(far_pool, n_pool, replace=far_pool.size < n_pool),
                                 rng.choice(near_pool, n_near, replace=near_pool.size < n_near)])
-        return {
+        near = a["near"][q_idx]
+        if len(fresh_q):
+            near = np.concatenate([np.zeros(len(fresh_q), dtype=bool), near])
+        item = {
             "surface": torch.from_numpy(np.ascontiguousarray(a["surface"][s_idx])),
-            "queries": torch.from_numpy(np.ascontiguousarray(a["queries"][q_idx])),
-            "tsdf": torch.from_numpy(np.ascontiguousarray(a["tsdf"][q_idx])),
-            "near": torch.from_numpy(np.ascontiguousarray(a["near"][q_idx])),
+            "queries": torch.from_numpy(np.concatenate([fresh_q, a["queries"][q_idx]])),
+            "tsdf": torch.from_numpy(np.concatenate([fresh_d, a["tsdf"][q_idx]])),
+            "near": torch.from_numpy(near),
             "t": torch.tensor(float(st["t"]), dtype=torch.float32),
             "shape_id": torch.tensor(sid, dtype=torch.int64),
             "stage": torch.tensor(int(st["index"]), dtype=torch.int64),
         }
+        if self.num_on_surface:
+            o_idx = rng.choice(ns, self.num_on_surface, replace=ns < self.num_on_surface)
+            item["on_surface"] = torch.from_numpy(np.ascontiguousarray(a["surface"][o_idx]))
+        return item
+
+    @staticmethod
+    def _fresh(a: dict[str, np.ndarray], count: int, truncation: float,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``count`` uniform points in [-1, 1]^3 at least ``truncation / 2`` from the surface, with their
+        TSDF interpolated from ``a["grid"]``: (n, 3) and (n,) float32."""
+        if count == 0:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+        from scipy.ndimage import map_coordinates
+
+        grid = a["grid"]
+        pts = rng.uniform(-1.0, 1.0, size=(2 * count, 3))
+        d = map_coordinates(grid, ((pts + 1.0) * 0.5 * (grid.shape[0] - 1)).T, order=1)
+        keep = np.flatnonzero(np.abs(d) >= 0.5 * truncation)[:count]
+        return pts[keep].astype(np.float32), d[keep].astype(np.float32)

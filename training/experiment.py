@@ -3,28 +3,34 @@
 :func:`run_experiment` runs, in order, each stage skipped when its output is already there (an
 interrupted run continues where it stopped):
 
-1. **shapes**: procedural genus-0 shapes (:func:`vnc_warp.shapes.shape_family`) written as PLY, and
-   the real meshes named by the config, read from a folder (nothing is downloaded);
-2. **flows**: one VNC-Flow trajectory per shape (Algorithm 1, :func:`vnc_warp.flow.flow` with
-   ``out_dir``, resumable), in a pool of processes when ``flow_workers > 1``;
-3. **dataset**: truncated-SDF samples of the training trajectories (:func:`~vnc_warp.training.data.build_dataset`);
-4. **training**: C-VAE-I on the procedural and real training shapes; the plain VecSet VAE of the same
-   size on the same shapes (every stage auto-encoded); C-VAE-II on one real trajectory (distillation)
-   on top of the frozen VAE encoder. With ``time_budget_s`` the step counts come from a measured
-   throughput (a short calibration run) so the whole experiment fits the budget;
-5. **generation**: meshes at ``times`` from the held-out shapes' stage 0 (C-VAE-I), from the
-   distilled shape (C-VAE-II, C-VAE-I) and from the latent-interpolation baseline
+1. **shapes**: procedural genus-0 blobs (:func:`vnc_warp.shapes.random_shape`) and humanoid bodies
+   (:func:`vnc_warp.shapes.humanoid`), made inside the flow jobs, and the real meshes named by the config,
+   read from a folder (nothing is downloaded);
+2. **flows**: one VNC-Flow trajectory per shape (Algorithm 1, :func:`vnc_warp.flow` with ``out_dir``,
+   resumable), in a pool of processes when ``flow_workers > 1``; the distilled body gets ``distill_stages``;
+3. **dataset**: truncated-SDF samples of the training trajectories and the distilled one
+   (:func:`~vnc_warp.training.data.build_dataset`);
+4. **training**: C-VAE-I on the procedural and real training shapes; the plain VecSet VAE of the same size
+   on the same shapes (every stage auto-encoded) for the same wall-clock budget; C-VAE-II on the distilled
+   trajectory on top of the frozen VAE encoder. With a budget the step count comes from a measured
+   throughput (a short calibration run);
+5. **generation**: meshes at ``times`` (``resolution``^3 marching cubes) from the held-out shapes' stage 0
+   (C-VAE-I), from the distilled shape (C-VAE-II, C-VAE-I) and from the latent-interpolation baseline
    (:mod:`vnc_warp.training.baseline`) on the same trajectories;
-6. **evaluation**: CD / EMD / NCE (Tab. 2, :func:`~vnc_warp.training.metrics.evaluate_trajectory`)
-   of every prediction against the ground-truth stage nearest in t;
-7. **latent anatomy** (Fig. 11): C-VAE-I latents of every stage of the held-out trajectories, PCA of
-   the mean-pooled latents (UMAP of the max-pooled ones when umap-learn is installed), their
-   correlations with t; the plain VAE's latents of the same stages as a control;
-8. **results**: ``results.json`` and ``results.md`` (tables) and a few PNGs in ``out_dir``;
-   trajectories, datasets, checkpoints and predicted meshes stay in ``work_dir``.
+6. **evaluation**: CD / EMD / NCE (Tab. 2, :func:`~vnc_warp.training.metrics.evaluate_trajectory`) of every
+   prediction against the ground-truth stage nearest in t, whole and largest component, package frame and
+   unit box, beside the sampling floor of each scored stage at the same counts;
+7. **latent anatomy** (Fig. 11): C-VAE-I latents of every stage of the held-out trajectories: norm vs t and
+   the principal direction that best orders each trajectory by t (:func:`~vnc_warp.training.latent.latent_anatomy`);
+   the plain VAE's latents of the same stages as a control;
+8. **results**: ``results.json``, ``results.md`` (tables and the issue's checks) and at most six PNGs in
+   ``out_dir``; trajectories, datasets, checkpoints and predicted meshes stay in ``work_dir``.
 
-Sizes come from an :class:`ExperimentConfig`; :data:`PRESETS` holds ``cpu-smoke`` (minutes on a
-2-core CPU) and ``gpu`` (one H200, about 8 minutes of wall time including the flows).
+The stages are grouped into :data:`STEPS` (data, train, generate, report) so that a run can be made of
+separate commands of bounded length (``vnc-warp experiment --step N``): step N runs (or skips, when done)
+every stage up to its last one. Sizes come from an :class:`ExperimentConfig`; :data:`PRESETS` holds
+``cpu-smoke`` (minutes on a 2-core CPU), ``cpu-rehearsal`` (the ``gpu`` pipeline at CPU sizes) and ``gpu``
+(one H100/H200, four steps of at most about 8 minutes).
 """
 
 from __future__ import annotations
@@ -49,15 +55,16 @@ import torch
 
 from .config import DataConfig, LossConfig, ModelConfig, OptimConfig, TrainConfig, _from_dict
 
-__all__ = ["ExperimentConfig", "PRESETS", "preset", "load_experiment", "run_experiment", "default_meshes_dir",
-           "results_markdown"]
+__all__ = ["ExperimentConfig", "PRESETS", "STEPS", "preset", "load_experiment", "run_experiment",
+           "default_meshes_dir", "results_markdown", "check_results"]
 
 METHODS = {"cvae1": "C-VAE-I", "cvae2": "C-VAE-II", "baseline": "latent interp. (VAE)"}
 _SHORT = {"cvae1": "C-VAE-I", "cvae2": "C-VAE-II", "baseline": "interp."}
 MODELS = {"cvae1": "C-VAE-I", "vae": "VAE (baseline; C-VAE-II's frozen encoder)", "cvae2": "C-VAE-II"}
+STEPS = {1: "data", 2: "train", 3: "generate", 4: "report"}
 # settings that change how fast a run goes, not what it computes: a work folder may be resumed with others
-_RUNTIME_KEYS = ("name", "flow_workers", "flow_budget_s", "eval_workers", "torch_threads", "figures", "time_budget_s",
-                 "reserve_s", "train_shares", "render_size")
+_RUNTIME_KEYS = ("name", "flow_workers", "flow_budget_s", "eval_workers", "torch_threads", "figures",
+                 "train_budget_s", "distill_budget_s", "render_size", "data_workers")
 
 
 @dataclass
@@ -66,21 +73,32 @@ class ExperimentConfig:
 
     Attributes:
         name: label (the preset's name).
-        num_shapes: procedural shapes (:func:`vnc_warp.shapes.shape_family`).
-        shape_seed: family seed.
-        subdivisions: icosphere subdivisions of the procedural shapes (3: 642 vertices, 4: 2562).
-        holdout_shapes: the last this many procedural shapes are held out (never trained on).
+        num_shapes: procedural genus-0 blobs (:func:`vnc_warp.shapes.random_shape`).
+        shape_seed: seed of the blob and humanoid families.
+        subdivisions: icosphere subdivisions of the blobs (3: 642 vertices, 4: 2562).
+        holdout_shapes: the last this many blobs are held out (never trained on).
+        num_humanoids: procedural bodies (:func:`vnc_warp.shapes.humanoid`).
+        holdout_humanoids: the last this many bodies are held out.
+        humanoid_voxel: marching-cubes voxel of the bodies (metres; the flow remeshes them to ``real_faces``).
         train_meshes: real mesh files (in the meshes folder) added to the training set.
         holdout_meshes: real mesh files held out (generalization, latent anatomy).
-        distill_mesh: the training mesh C-VAE-II distils (Sec. 4.3); ``""`` skips C-VAE-II.
-        real_faces: face count of the real meshes' remeshed states (their flows' ``faces``).
+        distill_mesh: the real mesh C-VAE-II distils (Sec. 4.3), one of ``train_meshes`` or ``holdout_meshes``
+            (held out, C-VAE-I and the VAE never see it); ``""`` skips C-VAE-II.
+        distill_stages: VNC-Flow stages of the distilled trajectory (0: ``stages``).
+        real_faces: face count of the remeshed states of real meshes and humanoids (their flows' ``faces``).
         real_resolution: SDF-remesh grid nodes for the real meshes (None: automatic).
         stages: VNC-Flow stages N.
         max_iters: VNC-Flow iteration cap per stage.
-        flow_workers: processes running flows at once (1: in this process).
+        flow_workers: processes making shapes and running flows at once (1: in this process).
         flow_budget_s: seconds after which procedural training shapes whose flow has not started are
             left out (held-out and real shapes always flow, first); None: no limit.
-        num_samples: surface points, uniform and near-surface queries per stage of the dataset.
+        num_samples: surface points, uniform and near-surface queries per stage of the dataset (the pools
+            every item draws a fresh subset from).
+        num_reference: queries per stage near the trajectory's stage 0, labelled with the stage's SDF (where
+            remnants of the detailed input float; see :func:`~vnc_warp.training.data.build_dataset`).
+        grid_resolution: nodes per axis of each stage's stored TSDF grid, from which items label fresh far
+            queries (``data.fresh_fraction``); 0: none.
+        noise: standard deviations of the near-surface queries (normalized units), split evenly.
         truncation: TSDF truncation (normalized units).
         backbone: the VecSet backbone shared by all three models (``kind`` and ``pretrained`` are set
             per model): the baseline VAE is the C-VAE's size by construction.
@@ -89,17 +107,17 @@ class ExperimentConfig:
             item itself for the VAE). ``optim.total_steps`` is the step count, or the cap with a budget.
         repeats: passes over the training stages per data-loader epoch.
         distill_repeats: the same for the single distilled trajectory.
-        time_budget_s: wall-clock budget of the whole experiment; None trains the configured steps.
-        reserve_s: seconds of the budget kept for generation, evaluation and figures.
-        train_shares: shares of the training time of C-VAE-I, VAE and C-VAE-II.
+        train_budget_s: wall-clock seconds of C-VAE-I and, the same, of the VAE; None trains the configured steps.
+        distill_budget_s: wall-clock seconds of C-VAE-II; None trains the configured steps.
         calibration_steps: steps timed before the step count of a budgeted model is fixed.
         min_steps: fewest steps of a budgeted model.
+        data_workers: DataLoader workers of every model (None: each section's ``data.num_workers``).
         torch_threads: torch CPU threads while training (None: torch's default).
         times: normalized times the models are decoded at.
         resolution: marching-cubes grid samples per axis.
         n_points, n_emd: surface samples for CD/NCE and for the exact EMD.
         eval_workers: processes scoring predictions at once.
-        figures: write the trajectory montages.
+        figures: write the figures.
         render_size: pixels per montage frame.
         seed: seed of the evaluation and anatomy sampling.
     """
@@ -109,9 +127,13 @@ class ExperimentConfig:
     shape_seed: int = 0
     subdivisions: int = 3
     holdout_shapes: int = 1
+    num_humanoids: int = 0
+    holdout_humanoids: int = 0
+    humanoid_voxel: float = 0.012
     train_meshes: tuple[str, ...] = ("spot_lowres.obj", "human_man.obj")
     holdout_meshes: tuple[str, ...] = ("fandisk.obj",)
     distill_mesh: str = "human_man.obj"
+    distill_stages: int = 0
     real_faces: int = 1280
     real_resolution: int | None = 40
     stages: int = 3
@@ -119,6 +141,9 @@ class ExperimentConfig:
     flow_workers: int = 1
     flow_budget_s: float | None = None
     num_samples: tuple[int, int, int] = (2048, 2048, 2048)
+    num_reference: int = 0
+    grid_resolution: int = 0
+    noise: tuple[float, ...] = (0.005, 0.02)
     truncation: float = 0.1
     backbone: ModelConfig = field(default_factory=ModelConfig)
     cvae1: TrainConfig = field(default_factory=TrainConfig)
@@ -126,11 +151,11 @@ class ExperimentConfig:
     cvae2: TrainConfig = field(default_factory=TrainConfig)
     repeats: int = 1
     distill_repeats: int = 4
-    time_budget_s: float | None = None
-    reserve_s: float = 60.0
-    train_shares: tuple[float, float, float] = (0.45, 0.3, 0.25)
+    train_budget_s: float | None = None
+    distill_budget_s: float | None = None
     calibration_steps: int = 30
     min_steps: int = 100
+    data_workers: int | None = None
     torch_threads: int | None = None
     times: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
     resolution: int = 48
@@ -171,31 +196,41 @@ class ExperimentConfig:
         Raises:
             ValueError: naming the key and the value.
         """
-        if self.num_shapes < 1 or not 0 <= self.holdout_shapes < self.num_shapes:
-            raise ValueError(f"need num_shapes >= 1 and 0 <= holdout_shapes < num_shapes, got {self.num_shapes} "
+        if self.num_shapes < 0 or not 0 <= self.holdout_shapes <= self.num_shapes:
+            raise ValueError(f"need num_shapes >= 0 and 0 <= holdout_shapes <= num_shapes, got {self.num_shapes} "
                              f"and {self.holdout_shapes}")
-        if not self.holdout_shapes and not self.holdout_meshes:
-            raise ValueError("nothing is held out: set holdout_shapes > 0 or list holdout_meshes")
-        if self.distill_mesh and self.distill_mesh not in self.train_meshes:
+        if self.num_humanoids < 0 or not 0 <= self.holdout_humanoids <= self.num_humanoids:
+            raise ValueError(f"need num_humanoids >= 0 and 0 <= holdout_humanoids <= num_humanoids, got "
+                             f"{self.num_humanoids} and {self.holdout_humanoids}")
+        if not self.humanoid_voxel > 0:
+            raise ValueError(f"humanoid_voxel must be positive, got {self.humanoid_voxel}")
+        if not (self.holdout_shapes or self.holdout_humanoids or self.holdout_meshes):
+            raise ValueError("nothing is held out: set holdout_shapes or holdout_humanoids > 0, or list holdout_meshes")
+        if (self.num_shapes - self.holdout_shapes + self.num_humanoids - self.holdout_humanoids
+                + len(self.train_meshes)) < 1:
+            raise ValueError("nothing to train on: no procedural training shape and no train_meshes")
+        if self.distill_mesh and self.distill_mesh not in (*self.train_meshes, *self.holdout_meshes):
             raise ValueError(f"distill_mesh {self.distill_mesh!r} must be one of train_meshes "
-                             f"{list(self.train_meshes)}")
+                             f"{list(self.train_meshes)} or holdout_meshes {list(self.holdout_meshes)}")
         names = [Path(m).stem for m in (*self.train_meshes, *self.holdout_meshes)]
         if len(set(names)) != len(names):
             raise ValueError(f"real mesh names must be unique (train and held out together), got {names}")
-        if self.stages < 1 or self.max_iters < 1 or self.flow_workers < 1 or self.eval_workers < 1:
-            raise ValueError("stages, max_iters, flow_workers and eval_workers must be >= 1")
-        if min(self.num_samples) < 1 or self.repeats < 1 or self.distill_repeats < 1:
-            raise ValueError("num_samples, repeats and distill_repeats must be >= 1")
+        if min(self.stages, self.max_iters, self.flow_workers, self.eval_workers) < 1 or self.distill_stages < 0:
+            raise ValueError("stages, max_iters, flow_workers and eval_workers must be >= 1, distill_stages >= 0")
+        if min(self.num_samples) < 1 or self.repeats < 1 or self.distill_repeats < 1 or self.num_reference < 0:
+            raise ValueError("num_samples, repeats and distill_repeats must be >= 1, num_reference >= 0")
+        if not self.noise or min(self.noise) <= 0:
+            raise ValueError(f"noise must list positive standard deviations, got {list(self.noise)}")
         if not self.times or not all(0.0 <= t <= 1.0 for t in self.times):
             raise ValueError(f"times must be a non-empty list in [0, 1], got {list(self.times)}")
-        if self.flow_budget_s is not None and not self.flow_budget_s > 0:
-            raise ValueError(f"flow_budget_s must be positive or None, got {self.flow_budget_s}")
-        if self.time_budget_s is not None and not self.time_budget_s > 0:
-            raise ValueError(f"time_budget_s must be positive or None, got {self.time_budget_s}")
-        if len(self.train_shares) != 3 or min(self.train_shares) <= 0:
-            raise ValueError(f"train_shares must be three positive numbers, got {self.train_shares}")
+        for key in ("flow_budget_s", "train_budget_s", "distill_budget_s"):
+            value = getattr(self, key)
+            if value is not None and not value > 0:
+                raise ValueError(f"{key} must be positive or None, got {value}")
         if not 1 <= self.n_emd <= self.n_points or self.resolution < 8:
             raise ValueError("need 1 <= n_emd <= n_points and resolution >= 8")
+        if self.data_workers is not None and self.data_workers < 0:
+            raise ValueError(f"data_workers must be >= 0 or None, got {self.data_workers}")
         for kind in ("cvae1", "vae", "cvae2"):
             run_config(self, kind, pretrained="vae.pt").validate()
 
@@ -212,67 +247,115 @@ def run_config(config: ExperimentConfig, kind: str, *, pretrained: str | None = 
 
 
 def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: int, queries: int, workers: int,
-                   kl: float, linear_kl: bool, eik_queries: int, log_every: int, ckpt_every: int) -> TrainConfig:
+                   kl: float, linear_kl: bool, eik_queries: int, log_every: int, ckpt_every: int,
+                   kl_time_ratio: float = 1.0, near_fraction: float = 0.5, on_surface: int = 0,
+                   surface_weight: float = 0.0, normal_weight: float = 0.0, fresh_fraction: float = 0.0) -> TrainConfig:
     loss = LossConfig(kl_weight=kl, kl_schedule="linear" if linear_kl else "constant", kl_weight_start=0.0,
                       kl_warmup_start=steps // 10 if linear_kl else 0, kl_warmup_steps=steps // 2 if linear_kl else 0,
-                      eikonal_weight=0.01, eikonal_queries=eik_queries)
+                      kl_time_ratio=kl_time_ratio, eikonal_weight=0.01, eikonal_queries=eik_queries,
+                      surface_weight=surface_weight, normal_weight=normal_weight)
     return TrainConfig(loss=loss, optim=OptimConfig(lr=lr, weight_decay=0.01, warmup_steps=warmup, total_steps=steps,
                                                     min_lr_ratio=0.1),
-                       data=DataConfig(num_surface=surface, num_queries=queries, batch_size=batch, num_workers=workers),
+                       data=DataConfig(num_surface=surface, num_queries=queries, batch_size=batch, num_workers=workers,
+                                       near_fraction=near_fraction, num_on_surface=on_surface,
+                                       fresh_fraction=fresh_fraction),
                        bf16=True, log_every=log_every, ckpt_every=ckpt_every)
+
+
+# The recipe of every model (issue 24): half the queries near the surface, half of the others drawn afresh for
+# every item (labelled from the stage's TSDF grid), the surface and normal terms, the narrow posterior at init
+# (ModelConfig.logvar_init), a decoder that starts from empty space (ModelConfig.sdf_init = the truncation);
+# C-VAE-I's KL prior contracts toward t = 0 (the radial structure).
+_RECIPE = dict(near_fraction=0.5, fresh_fraction=0.5, surface_weight=1.0, normal_weight=0.05)
+
+
+def _sections(*, lr: float, steps: int, warmup: int, common: dict, distill: dict | None = None) -> dict:
+    """The three models' training sections: beta_kl 1e-3 warmed up for C-VAE-I (with the temporal prior, ratio
+    100) and the VAE alike, 1e-4 for C-VAE-II; ``distill`` overrides ``common`` for C-VAE-II."""
+    kw = dict(lr=lr, steps=steps, warmup=warmup)
+    return {"cvae1": _train_section(**kw, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **common),
+            "vae": _train_section(**kw, kl=1e-3, linear_kl=True, **common),
+            "cvae2": _train_section(**kw, kl=1e-4, linear_kl=False, **(distill or common))}
+
+
+def _tiny_backbone() -> ModelConfig:
+    """~0.3M-parameter models for CPU runs."""
+    return ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2, num_freqs=6,
+                       chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1, sdf_init=0.1)
 
 
 def _cpu_smoke() -> ExperimentConfig:
     """About 2 minutes on a 2-core CPU: 6 shapes of 642 vertices (one held out), Spot and the SMPL body
     remeshed to 1280 faces for training, fandisk held out, 3 stages, ~0.3M-parameter models, fixed steps."""
-    small = dict(batch=4, surface=256, queries=256, workers=0, eik_queries=64, log_every=10, ckpt_every=100)
+    small = dict(batch=4, surface=256, queries=256, workers=0, eik_queries=64, log_every=10, ckpt_every=100,
+                 on_surface=64, **_RECIPE)
     return ExperimentConfig(
         name="cpu-smoke", num_shapes=6, shape_seed=0, subdivisions=3, holdout_shapes=1,
         train_meshes=("spot_lowres.obj", "human_man.obj"), holdout_meshes=("fandisk.obj",),
         distill_mesh="human_man.obj",
         real_faces=1280, real_resolution=40, stages=3, max_iters=200, flow_workers=1, num_samples=(2048, 2048, 2048),
-        backbone=ModelConfig(width=64, heads=4, num_latents=32, latent_dim=8, encoder_depth=1, decoder_depth=2,
-                             num_freqs=6, chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1),
-        cvae1=_train_section(lr=1e-3, steps=500, warmup=20, kl=1e-4, linear_kl=True, **small),
-        vae=_train_section(lr=1e-3, steps=500, warmup=20, kl=1e-4, linear_kl=False, **small),
-        cvae2=_train_section(lr=1e-3, steps=300, warmup=20, kl=1e-4, linear_kl=False, **small),
-        repeats=1, distill_repeats=4, time_budget_s=None, torch_threads=1, resolution=48, n_points=5000, n_emd=500,
+        num_reference=1024, grid_resolution=32, backbone=_tiny_backbone(),
+        **_sections(lr=1e-3, steps=500, warmup=20, common=small),
+        repeats=1, distill_repeats=4, torch_threads=1, resolution=48, n_points=5000, n_emd=500,
         eval_workers=1, figures=True, render_size=128)
 
 
+# Real meshes of ../shared/data/meshes the gpu preset trains on: every closed genus-0 one except the bodies
+# (held out) and the duplicate Spot (spot_lowres is the same cow).
+_REAL_TRAIN = ("spot_lowres.obj", "bunny.obj", "armadillo.obj", "fandisk.obj", "goathead.obj", "penguin.obj",
+               "wingnut.obj", "brucewick.obj", "springer.obj", "fish.obj", "mushroom.obj", "sword.obj", "hammer.obj",
+               "koala.obj", "nefertiti.obj", "scorpion.obj")
+_BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
+
+
 def _gpu() -> ExperimentConfig:
-    """One H200, about 8 minutes of wall time including the flows.
+    """One H100 or H200 in four steps of at most ~8 minutes (about 20 minutes in all).
 
-    48 shapes of 2562 vertices (6 held out) and Spot, bunny, armadillo and the SMPL body remeshed to
-    6000 faces for training, fandisk and FAUST held out, 8 stages, flows in 8 processes (held-out and
-    real shapes first; procedural training shapes not started after 180 s are left out). The paper's
-    models (2048 x 32/64 latents, 768/1024 wide, 16-24 layers) would get a few hundred steps in this
-    budget; these are 384 wide with 512 x 32 latents and 2 + 6 layers (C-VAE-I 24M parameters, the
-    VAE 18M), trained in bf16 for as many steps as the budget allows (calibrated), at most
-    8000 / 8000 / 4000.
+    36 humanoids (5 held out), 16 blobs (1 held out) and 16 real meshes for training, the two real bodies held
+    out; every shape flowed by VNC-Flow to 8 stages at 6,000 faces, the distilled body (human_man) to 32.
+    Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 180 s of
+    training each, C-VAE-II 200 s; 256^3 marching cubes, CD on 100k points, EMD on 4,096.
     """
-    big = dict(batch=32, surface=4096, queries=4096, workers=6, eik_queries=1024, log_every=10, ckpt_every=500)
+    big = dict(batch=32, surface=4096, queries=8192, workers=8, eik_queries=512, log_every=20, ckpt_every=200,
+               on_surface=1024, **_RECIPE)
+    distill = dict(big, batch=16, queries=16384, on_surface=2048)
     return ExperimentConfig(
-        name="gpu", num_shapes=48, shape_seed=0, subdivisions=4, holdout_shapes=6,
-        train_meshes=("spot_lowres.obj", "bunny.obj", "armadillo.obj", "human_man.obj"),
-        holdout_meshes=("fandisk.obj", "faust_tr_reg_025.ply"), distill_mesh="human_man.obj",
-        real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=8, flow_budget_s=180.0,
-        num_samples=(8192, 8192, 8192),
+        name="gpu", num_shapes=16, shape_seed=0, subdivisions=4, holdout_shapes=1, num_humanoids=36,
+        holdout_humanoids=5, humanoid_voxel=0.01, train_meshes=_REAL_TRAIN, holdout_meshes=_BODIES,
+        distill_mesh="human_man.obj", distill_stages=32,
+        real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=12, flow_budget_s=240.0,
+        num_samples=(32768, 16384, 65536), num_reference=16384, grid_resolution=80, noise=(0.003, 0.01, 0.03),
         backbone=ModelConfig(width=384, heads=6, num_latents=512, latent_dim=32, encoder_depth=2, decoder_depth=6,
-                             num_freqs=8, chunk_size=32768, time_tokens=4, time_freq_dim=256, modulator_depth=2),
-        cvae1=_train_section(lr=3e-4, steps=8000, warmup=200, kl=1e-3, linear_kl=True, **big),
-        vae=_train_section(lr=3e-4, steps=8000, warmup=200, kl=1e-3, linear_kl=False, **big),
-        cvae2=_train_section(lr=2e-4, steps=4000, warmup=100, kl=1e-4, linear_kl=False, **big),
-        repeats=8, distill_repeats=64, time_budget_s=420.0, reserve_s=100.0, train_shares=(0.45, 0.3, 0.25),
-        calibration_steps=30, min_steps=100, torch_threads=None, resolution=96, n_points=20000, n_emd=1024,
-        eval_workers=8, figures=True, render_size=192)
+                             num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
+                             sdf_init=0.1),
+        **_sections(lr=4e-4, steps=20000, warmup=100, common=big, distill=distill),
+        repeats=8, distill_repeats=64, train_budget_s=180.0, distill_budget_s=200.0, calibration_steps=30,
+        min_steps=100, torch_threads=None, resolution=256, n_points=100_000, n_emd=4096, eval_workers=14,
+        figures=True, render_size=192)
 
 
-PRESETS: dict[str, Callable[[], ExperimentConfig]] = {"cpu-smoke": _cpu_smoke, "gpu": _gpu}
+def _cpu_rehearsal() -> ExperimentConfig:
+    """The ``gpu`` preset's pipeline at CPU sizes: every kind of shape, the held-out bodies, the 4 steps, the
+    same evaluation protocol at small counts (tens of minutes on a 2-core CPU)."""
+    cfg = _gpu()
+    small = dict(batch=4, surface=256, queries=512, workers=0, eik_queries=64, log_every=10, ckpt_every=40,
+                 on_surface=64, **_RECIPE)
+    return dataclasses.replace(
+        cfg, name="cpu-rehearsal", num_shapes=2, holdout_shapes=1, subdivisions=3, num_humanoids=3,
+        holdout_humanoids=1, humanoid_voxel=0.02, train_meshes=("spot_lowres.obj", "goathead.obj"),
+        distill_stages=4, real_faces=1000, real_resolution=40, stages=2, max_iters=60, flow_workers=2,
+        flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024, grid_resolution=32,
+        backbone=_tiny_backbone(), **_sections(lr=1e-3, steps=400, warmup=20, common=small),
+        repeats=2, distill_repeats=4, train_budget_s=40.0, distill_budget_s=30.0, calibration_steps=10,
+        min_steps=20, torch_threads=1, resolution=48, n_points=4000, n_emd=256, eval_workers=2, render_size=96)
+
+
+PRESETS: dict[str, Callable[[], ExperimentConfig]] = {"cpu-smoke": _cpu_smoke, "cpu-rehearsal": _cpu_rehearsal,
+                                                      "gpu": _gpu}
 
 
 def preset(name: str) -> ExperimentConfig:
-    """A fresh copy of a named experiment (``cpu-smoke`` or ``gpu``).
+    """A fresh copy of a named experiment (``cpu-smoke``, ``cpu-rehearsal`` or ``gpu``).
 
     Raises:
         ValueError: unknown name.
@@ -323,11 +406,11 @@ def default_meshes_dir() -> Path | None:
 
 
 class _Clock:
-    """Wall time per stage and the experiment's deadline."""
+    """Wall time per stage, in this call and summed over every call on the work folder (``timings.json``)."""
 
-    def __init__(self, budget_s: float | None) -> None:
+    def __init__(self, path: Path | None = None) -> None:
         self.start = time.perf_counter()
-        self.deadline = None if budget_s is None else self.start + budget_s
+        self.path = path
         self.seconds: dict[str, float] = {}
 
     @contextlib.contextmanager
@@ -337,11 +420,18 @@ class _Clock:
         try:
             yield
         finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+            spent = time.perf_counter() - t0
+            self.seconds[name] = self.seconds.get(name, 0.0) + spent
+            if self.path is not None:
+                totals = json.loads(self.path.read_text()) if self.path.is_file() else {}
+                totals[name] = totals.get(name, 0.0) + spent
+                self.path.write_text(json.dumps(totals, indent=1))
             log(f"[experiment] {name}: {self.seconds[name]:.1f} s")
 
-    def left(self) -> float | None:
-        return None if self.deadline is None else self.deadline - time.perf_counter()
+    def totals(self) -> dict[str, float]:
+        """Seconds per stage over every call (this one included), and their sum."""
+        totals = json.loads(self.path.read_text()) if self.path is not None and self.path.is_file() else self.seconds
+        return {**totals, "total": float(sum(totals.values()))}
 
     def total(self) -> float:
         return time.perf_counter() - self.start
@@ -351,13 +441,19 @@ class _Clock:
 class _Shape:
     name: str
     source: Path
-    kind: str  # "procedural" | "real"
+    kind: str  # "blob" | "humanoid" | "real"
     role: str  # "train" | "holdout"
     faces: int | None
     resolution: int | None
+    stages: int
     traj: Path
+    recipe: dict | None = None  # how to make a procedural source (None: a real mesh file)
     status: str = "pending"
     info: dict = field(default_factory=dict)
+
+    @property
+    def procedural(self) -> bool:
+        return self.kind != "real"
 
 
 def _check_work_dir(work: Path, config: ExperimentConfig) -> None:
@@ -376,7 +472,8 @@ def _check_work_dir(work: Path, config: ExperimentConfig) -> None:
 
 
 def _shapes(config: ExperimentConfig, work: Path, meshes_dir: Path | None) -> list[_Shape]:
-    from vnc_warp.shapes import shape_family
+    """Every shape of the experiment with its role; procedural sources are made later, in the flow jobs."""
+    from vnc_warp.shapes import family_seeds
 
     real = [*config.train_meshes, *config.holdout_meshes]
     if real:
@@ -388,39 +485,59 @@ def _shapes(config: ExperimentConfig, work: Path, meshes_dir: Path | None) -> li
             raise FileNotFoundError(f"{meshes_dir}: missing mesh file(s) {missing}")
     shapes = []
     folder = work / "shapes"
-    folder.mkdir(parents=True, exist_ok=True)
-    family = None
-    for i in range(config.num_shapes):
+    blob_seeds = family_seeds(config.num_shapes, config.shape_seed) if config.num_shapes else []
+    for i, seed in enumerate(blob_seeds):
         name = f"family{config.shape_seed}_{i:04d}"
-        path = folder / f"{name}.ply"
-        if not path.is_file():
-            if family is None:
-                family = shape_family(config.num_shapes, config.shape_seed, subdivisions=config.subdivisions)
-            tmp = folder / f"{name}.tmp.ply"
-            family[i].save(tmp)
-            os.replace(tmp, path)
         role = "holdout" if i >= config.num_shapes - config.holdout_shapes else "train"
-        shapes.append(_Shape(name, path, "procedural", role, None, None, work / "traj" / name))
+        shapes.append(_Shape(name, folder / f"{name}.ply", "blob", role, None, None, config.stages, work / "traj" / name,
+                             recipe={"kind": "blob", "seed": seed, "subdivisions": config.subdivisions}))
+    body_seeds = family_seeds(config.num_humanoids, config.shape_seed) if config.num_humanoids else []
+    for i, seed in enumerate(body_seeds):
+        name = f"human{config.shape_seed}_{i:04d}"
+        role = "holdout" if i >= config.num_humanoids - config.holdout_humanoids else "train"
+        shapes.append(_Shape(name, folder / f"{name}.ply", "humanoid", role, config.real_faces, None, config.stages,
+                             work / "traj" / name, recipe={"kind": "humanoid", "seed": seed,
+                                                           "voxel": config.humanoid_voxel}))
     for files, role in ((config.train_meshes, "train"), (config.holdout_meshes, "holdout")):
         for file in files:
             name = Path(file).stem
+            stages = config.distill_stages or config.stages if file == config.distill_mesh else config.stages
             shapes.append(_Shape(name, (meshes_dir / file).resolve(), "real", role, config.real_faces,
-                                 config.real_resolution, work / "traj" / name))
+                                 config.real_resolution, stages, work / "traj" / name))
     return shapes
 
 
+def _make_source(path: Path, recipe: dict) -> None:
+    """Write a procedural shape (atomically; an existing file is kept)."""
+    if path.is_file():
+        return
+    from vnc_warp.shapes import humanoid, random_shape
+
+    if recipe["kind"] == "blob":
+        mesh = random_shape(recipe["seed"], subdivisions=recipe["subdivisions"], name=path.stem)
+    else:
+        mesh = humanoid(recipe["seed"], voxel=recipe["voxel"], name=path.stem)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.ply")
+    mesh.save(tmp)
+    os.replace(tmp, path)
+
+
 def _flow_job(job: dict) -> dict:
-    """Run (or resume) one VNC-Flow; module-level so that a process pool can pickle it."""
+    """Make the shape (procedural) and run (or resume) its VNC-Flow; module-level so that a process pool can
+    pickle it. Flows through the package's public :func:`vnc_warp.flow`."""
+    import vnc_warp
     import vnc_warp._device  # noqa: F401  (quiet Warp first)
-    from vnc_warp.flow import flow
 
     t0 = time.perf_counter()
     try:
+        if job["recipe"] is not None:
+            _make_source(Path(job["source"]), job["recipe"])
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            traj = flow(job["source"], stages=job["stages"], faces=job["faces"], device=job["device"],
-                        out_dir=job["out_dir"], progress=False, resolution=job["resolution"],
-                        max_iters=job["max_iters"])
+            traj = vnc_warp.flow(job["source"], stages=job["stages"], faces=job["faces"], device=job["device"],
+                                 out_dir=job["out_dir"], progress=False, resolution=job["resolution"],
+                                 max_iters=job["max_iters"])
     except Exception as exc:  # one failed shape must not end the experiment; it is reported
         return {"name": job["name"], "status": "failed", "error": f"{type(exc).__name__}: {exc}",
                 "seconds": time.perf_counter() - t0}
@@ -447,16 +564,16 @@ def _flows(shapes: list[_Shape], config: ExperimentConfig, device: str | None, w
     dropped_path = work / "dropped.json"
     dropped = set(json.loads(dropped_path.read_text())) if dropped_path.is_file() else set()
     jobs = []
-    for s in sorted(shapes, key=lambda s: s.kind == "procedural" and s.role == "train"):
+    for s in sorted(shapes, key=lambda s: s.procedural and s.role == "train"):
         if s.name in dropped:
             s.status, s.info = "dropped", {"status": "dropped (flow budget of an earlier run)"}
-        elif _complete(s.traj, config.stages):
+        elif _complete(s.traj, s.stages):
             man = json.loads((s.traj / "manifest.json").read_text())
             s.status, s.info = "done", {"status": "skipped (done)", "t": [round(r["t"], 4) for r in man["stages"]]}
         else:
-            jobs.append({"name": s.name, "source": str(s.source), "stages": config.stages, "faces": s.faces,
+            jobs.append({"name": s.name, "source": str(s.source), "stages": s.stages, "faces": s.faces,
                          "resolution": s.resolution, "max_iters": config.max_iters, "device": device,
-                         "out_dir": str(s.traj), "optional": s.kind == "procedural" and s.role == "train"})
+                         "out_dir": str(s.traj), "recipe": s.recipe, "optional": s.procedural and s.role == "train"})
     by_name = {s.name: s for s in shapes}
     t0 = time.perf_counter()
 
@@ -508,10 +625,11 @@ def _last_step(run: Path) -> int:
 
 
 def _scaled(cfg: TrainConfig, total: int) -> TrainConfig:
-    """``cfg`` with ``total`` steps; warm-ups given for its nominal length scale with it."""
+    """``cfg`` with ``total`` steps: the KL warm-up, given for the nominal length, scales with it; the learning-rate
+    warm-up keeps its length (at most a fifth of the run)."""
     ratio = total / cfg.optim.total_steps
     cfg.optim = dataclasses.replace(cfg.optim, total_steps=total,
-                                    warmup_steps=max(1, round(cfg.optim.warmup_steps * ratio)))
+                                    warmup_steps=max(1, min(cfg.optim.warmup_steps, total // 5)))
     cfg.loss = dataclasses.replace(cfg.loss, kl_warmup_start=round(cfg.loss.kl_warmup_start * ratio),
                                    kl_warmup_steps=round(cfg.loss.kl_warmup_steps * ratio))
     return cfg
@@ -557,26 +675,31 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
         log(f"  {kind}: training to step {cfg.optim.total_steps} (from {done}), budget "
             f"{'none' if budget_s is None else f'{budget_s:.0f} s'}")
         t0 = time.perf_counter()
-        train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
-        seconds += time.perf_counter() - t0
-    plan["seconds"] = plan.get("seconds", 0.0) + seconds
-    plan_path.write_text(json.dumps(plan, indent=1))
+        try:
+            with warnings.catch_warnings():
+                # the calibration ran under the nominal schedule; the planned one taking over is the design
+                warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
+                train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
+        finally:  # an interrupted run's seconds count too
+            plan["seconds"] = plan.get("seconds", 0.0) + seconds + time.perf_counter() - t0
+            plan_path.write_text(json.dumps(plan, indent=1))
+    else:
+        plan["seconds"] = plan.get("seconds", 0.0) + seconds
+        plan_path.write_text(json.dumps(plan, indent=1))
     rows = _rows(run)
     steady = [r["samples_per_s"] for r in rows[1:]] or [r["samples_per_s"] for r in rows]
-    last = rows[-1] if rows else {}
+    tail = rows[-max(1, len(rows) // 10):]
+    final = {k: float(np.mean([r[k] for r in tail if r.get(k) is not None])) if any(r.get(k) is not None for r in tail)
+             else None for k in _LOGGED}
     return {"steps": cfg.optim.total_steps, "batch_size": cfg.data.batch_size, "seconds": plan["seconds"],
             "samples_per_s": cfg.optim.total_steps * cfg.data.batch_size / max(plan["seconds"], 1e-9),
             "steady_samples_per_s": float(np.median(steady)) if steady else math.nan,
-            "final": {k: last.get(k) for k in ("loss", "tsdf", "kl", "eik", "beta_kl")},
-            "budget_s": plan.get("budget_s"), "items": len(dataset)}
+            "final": final, "budget_s": plan.get("budget_s"), "items": len(dataset),
+            "curve": {k: [[r["step"], r.get(k)] for r in rows[:: max(1, len(rows) // 200)]] for k in ("tsdf", "eval_tsdf")}}
 
 
-def _budget(clock: _Clock, config: ExperimentConfig, shares: list[float]) -> float | None:
-    """Seconds for the next model: its share of what is left after the generation reserve."""
-    left = clock.left()
-    if left is None:
-        return None
-    return max(left - config.reserve_s, 0.0) * shares[0] / sum(shares)
+# log.jsonl columns summarized (mean of the last tenth of the run) in results.json
+_LOGGED = ("loss", "tsdf", "eval_tsdf", "kl", "eik", "surf", "normal", "beta_kl")
 
 
 def _param_count(model: torch.nn.Module) -> dict[str, int]:
@@ -610,7 +733,16 @@ def _predicted(folder: Path, times: tuple[float, ...]) -> bool:
 
 def _aggregate(reports: dict[str, dict[str, dict]], groups: dict[str, list[str]],
                methods: dict[str, list[str]], times: tuple[float, ...]) -> dict:
-    """Mean scores per (group, method) and t over the group's trajectories."""
+    """Mean scores per (group, method) and t over the group's trajectories: the whole prediction (package frame
+    and ``unit_box``), its ``largest`` component, and the sampling ``floor`` of the scored stages."""
+    def mean(values):
+        return float(np.mean(values)) if values else math.nan
+
+    def scores(entries):
+        row = {k: mean([e[k] for e in entries]) for k in _SCORES}
+        row["unit_box"] = {k: mean([e["unit_box"][k] for e in entries]) for k in _SCORES}
+        return row
+
     out = {}
     for group, names in groups.items():
         out[group] = {}
@@ -620,17 +752,18 @@ def _aggregate(reports: dict[str, dict[str, dict]], groups: dict[str, list[str]]
                 entries = [next(e for e in reports[method][n]["per_t"] if abs(e["t"] - t) < 1e-9)
                            for n in names if n in reports.get(method, {})]
                 ok = [e for e in entries if "error" not in e]
-                row = {"t": t, "n": len(entries), "failed": len(entries) - len(ok)}
-                for k in ("cd_x1e4", "emd_x1e2", "nce"):
-                    row[k] = float(np.mean([e[k] for e in ok])) if ok else math.nan
-                row["t_gt"] = [e["t_gt"] for e in entries]
+                row = {"t": t, "n": len(entries), "failed": len(entries) - len(ok), **scores(ok),
+                       "largest": scores([e["largest"] for e in ok]), "floor": scores([e["floor"] for e in ok]),
+                       "components": [e.get("components") for e in entries], "t_gt": [e["t_gt"] for e in entries]}
                 per_t.append(row)
             ok_rows = [r for r in per_t if r["n"] > r["failed"]]
-            mean = {k: float(np.mean([r[k] for r in ok_rows])) if ok_rows else math.nan
-                    for k in ("cd_x1e4", "emd_x1e2", "nce")}
             out[group][method] = {"trajectories": [n for n in names if n in reports.get(method, {})],
-                                  "per_t": per_t, "mean": mean, "failed": sum(r["failed"] for r in per_t)}
+                                  "per_t": per_t, "mean": {k: mean([r[k] for r in ok_rows]) for k in _SCORES},
+                                  "failed": sum(r["failed"] for r in per_t)}
     return out
+
+
+_SCORES = ("cd_x1e4", "emd_x1e2", "nce")
 
 
 def _montage(path: Path, traj_dir: Path, rows: dict[str, Path], times: tuple[float, ...], size: int,
@@ -683,7 +816,7 @@ def _fig9b(path: Path, shape: _Shape, folder: Path, kind: str, config: Experimen
 
 def run_experiment(config: ExperimentConfig, *, out_dir: str | os.PathLike, work_dir: str | os.PathLike,
                    meshes_dir: str | os.PathLike | None = None, device: str | None = None, progress: bool = True,
-                   log: Callable[[str], None] = print) -> dict:
+                   log: Callable[[str], None] = print, step: int | None = None) -> dict:
     """Run (or continue) the experiment; see the module docstring for the stages.
 
     Args:
@@ -695,49 +828,47 @@ def run_experiment(config: ExperimentConfig, *, out_dir: str | os.PathLike, work
         device: ``"cpu"``, ``"cuda:0"``...; None: CUDA when present (Warp and torch alike).
         progress: progress bars of flows and training.
         log: where one-line progress messages go.
+        step: run the stages up to the end of step ``step`` of :data:`STEPS` (1 data, 2 train, 3 generate,
+            4 report) and stop; None: all of them.
 
     Returns:
-        The content of ``results.json``.
+        The content of ``results.json`` (step 4 or None), else a summary of what the step did.
 
     Raises:
         FileNotFoundError: a real mesh file is missing.
-        ValueError: invalid config, a work folder made with other settings, or nothing left to train
+        ValueError: invalid config or step, a work folder made with other settings, or nothing left to train
             or evaluate after failed flows.
     """
+    if step is not None and step not in STEPS:
+        raise ValueError(f"step must be one of {sorted(STEPS)} ({', '.join(STEPS.values())}), got {step}")
     threads = torch.get_num_threads()
     if config.torch_threads is not None:
         torch.set_num_threads(config.torch_threads)
     try:
-        return _run(config, Path(out_dir), Path(work_dir), meshes_dir, device, progress, log)
+        return _run(config, Path(out_dir), Path(work_dir), meshes_dir, device, progress, log, step or max(STEPS))
     finally:
         torch.set_num_threads(threads)
 
 
 def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.PathLike | None, device: str | None,
-         progress: bool, log: Callable[[str], None]) -> dict:
+         progress: bool, log: Callable[[str], None], last_step: int) -> dict:
     import vnc_warp._device  # noqa: F401  (quiet Warp first)
     import warp as wp
 
-    from .baseline import latent_interpolation
-    from .checkpoint import load_model
-    from .data import TrajectoryDataset, build_dataset, read_trajectory
-    from .inference import predict_times
-    from .latent import latent_anatomy
-    from .train import resolve_device
+    from .data import build_dataset
 
     config.validate()
-    clock = _Clock(config.time_budget_s)
-    out.mkdir(parents=True, exist_ok=True)
     _check_work_dir(work, config)
+    clock = _Clock(work / "timings.json")
     meshes = Path(meshes_dir) if meshes_dir is not None else default_meshes_dir()
-    torch_device = resolve_device(device)
+    torch_device = _torch_device(device)
     warp_device = device if device is not None else ("cuda:0" if torch_device.type == "cuda" else "cpu")
     results: dict[str, Any] = {"experiment": config.to_dict(), "notes": []}
     notes = results["notes"]
 
-    with clock.stage("shapes", log):
-        shapes = _shapes(config, work, meshes)
+    # step 1: data
     with clock.stage("flows", log):
+        shapes = _shapes(config, work, meshes)
         _flows(shapes, config, warp_device, work, log)
     results["flows"] = {s.name: {"kind": s.kind, "role": s.role, **s.info} for s in shapes}
     ok = [s for s in shapes if s.status == "done"]
@@ -752,142 +883,252 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     if not train_shapes or not holdout:
         raise ValueError(f"after failed flows {failed}, {len(train_shapes)} training and {len(holdout)} held-out "
                          "trajectories are left; need at least one of each")
-    distill = next((s for s in train_shapes if config.distill_mesh and s.name == Path(config.distill_mesh).stem), None)
+    distill = next((s for s in ok if config.distill_mesh and s.name == Path(config.distill_mesh).stem), None)
     if config.distill_mesh and distill is None:
         notes.append(f"C-VAE-II skipped: the flow of {config.distill_mesh} failed")
-
     with clock.stage("dataset", log):
+        in_data = [*train_shapes, *([distill] if distill is not None and distill.role == "holdout" else [])]
         ns, nu, nn_ = config.num_samples
-        results["dataset"] = build_dataset([s.traj for s in train_shapes], work / "data", num_surface=ns,
-                                           num_uniform=nu, num_near=nn_, truncation=config.truncation,
-                                           device=warp_device, seed=config.seed, progress=progress)
+        stamp = work / "data" / "built.json"
+        names = sorted(s.name for s in in_data)
+        if stamp.is_file() and json.loads(stamp.read_text()).get("shapes") == names:
+            results["dataset"] = json.loads(stamp.read_text())
+        else:
+            results["dataset"] = build_dataset([s.traj for s in in_data], work / "data", num_surface=ns,
+                                               num_uniform=nu, num_near=nn_, num_reference=config.num_reference,
+                                               grid_resolution=config.grid_resolution,
+                                               noise=config.noise,
+                                               truncation=config.truncation, device=warp_device, seed=config.seed,
+                                               progress=progress)
+            results["dataset"]["shapes"] = names
+            stamp.write_text(json.dumps(results["dataset"]))
+    if last_step == 1:
+        return _step_summary(1, results, clock, log)
 
-    training, shares = {}, list(config.train_shares)
+    # step 2: C-VAE-I and the VAE; step 3 begins with C-VAE-II
+    training = {}
     runs = work / "runs"
+    not_trained = () if distill is None or distill.role == "train" else (distill.name,)
     for kind in ("cvae1", "vae", "cvae2"):
-        if kind == "cvae2" and distill is None:
+        if kind == "cvae2" and (distill is None or last_step < 3):
             continue
         cfg = run_config(config, kind, pretrained=str((runs / "vae" / "checkpoints" / "last.pt").resolve()))
+        if config.data_workers is not None:
+            cfg.data = dataclasses.replace(cfg.data, num_workers=config.data_workers)
         with clock.stage(f"train_{kind}", log):
-            data = TrajectoryDataset(work / "data", num_surface=cfg.data.num_surface, num_queries=cfg.data.num_queries,
-                                     seed=cfg.seed, cache=True,
-                                     # the "test" split is exactly the listed shapes: the distilled one
-                                     split="test" if kind == "cvae2" else "all",
-                                     holdout=(distill.name,) if kind == "cvae2" else (),
-                                     repeats=config.distill_repeats if kind == "cvae2" else config.repeats)
-            data.preload()
-            training[kind] = _train(kind, cfg, data, runs / kind, device=str(torch_device),
-                                    budget_s=_budget(clock, config, shares), config=config, progress=progress, log=log)
-        shares.pop(0)
+            training[kind] = _train(kind, cfg, _dataset(kind, cfg, config, work, distill, not_trained), runs / kind,
+                                    device=str(torch_device),
+                                    budget_s=config.distill_budget_s if kind == "cvae2" else config.train_budget_s,
+                                    config=config, progress=progress, log=log)
+    results["training"] = training
+    if last_step == 2:
+        return _step_summary(2, results, clock, log)
+
+    # step 3: generation
+    from .checkpoint import load_model
 
     models = {kind: load_model(runs / kind, device=torch_device) for kind in training}
     for kind, (model, _) in models.items():
         training[kind]["parameters"] = _param_count(model)
-    results["training"] = training
-
-    # Predictions: C-VAE-I and the baseline on every held-out trajectory and the distilled one; C-VAE-II on the latter.
-    both = [*holdout, *([distill] if distill else [])]
-    targets = {"cvae1": both, "baseline": both, "cvae2": [distill] if distill and "cvae2" in models else []}
+    both = [*holdout, *([distill] if distill is not None and distill.role == "train" else [])]
+    targets = {"cvae1": both, "baseline": both, "cvae2": [distill] if "cvae2" in models else []}
     preds = work / "pred"
     with clock.stage("generate", log):
-        for method, trajs in targets.items():
-            for s in trajs:
-                folder = preds / method / s.name
-                if _predicted(folder, config.times):
-                    continue
-                if method == "baseline":
-                    model, cfg = models["vae"]
-                    latent_interpolation(model, s.traj, config.times, folder, resolution=config.resolution,
-                                         num_surface=cfg.data.num_surface, seed=config.seed)
-                else:
-                    model, cfg = models[method]
-                    predict_times(model, read_trajectory(s.traj).load_stage(0), config.times, folder,
-                                  num_surface=cfg.data.num_surface, resolution=config.resolution, seed=config.seed,
-                                  name=s.name, meta={"method": method})
+        _generate(targets, models, preds, config)
+    if last_step == 3:
+        return _step_summary(3, results, clock, log)
 
+    # step 4: evaluation, latent anatomy, results, figures
     with clock.stage("evaluate", log):
-        jobs, reports = [], {m: {} for m in targets}
-        (work / "eval").mkdir(parents=True, exist_ok=True)
-        for method, trajs in targets.items():
-            for s in trajs:
-                path = work / "eval" / f"{method}__{s.name}.json"
-                if path.is_file():
-                    reports[method][s.name] = json.loads(path.read_text())
-                else:
-                    jobs.append((method, s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
-                                                  "n_points": config.n_points, "n_emd": config.n_emd,
-                                                  "seed": config.seed, "out": str(path)}))
-        if config.eval_workers > 1 and len(jobs) > 1:
-            ctx = multiprocessing.get_context("spawn")
-            with cf.ProcessPoolExecutor(max_workers=min(config.eval_workers, len(jobs)), mp_context=ctx) as pool:
-                futures = {pool.submit(_eval_job, job): (m, n) for m, n, job in jobs}
-                for fut in cf.as_completed(futures):
-                    m, n = futures[fut]
-                    reports[m][n] = fut.result()
-        else:
-            for m, n, job in jobs:
-                reports[m][n] = _eval_job(job)
-        groups = {"held-out procedural": [s.name for s in holdout if s.kind == "procedural"],
-                  "held-out real": [s.name for s in holdout if s.kind == "real"]}
-        methods = {g: ["cvae1", "baseline"] for g in groups}
-        if distill is not None:
-            groups[f"distilled: {distill.name}"] = [distill.name]
-            methods[f"distilled: {distill.name}"] = [m for m in ("cvae2", "cvae1", "baseline") if targets[m]]
-        groups = {g: names for g, names in groups.items() if names}
-        results["evaluation"] = {
-            "groups": _aggregate(reports, groups, methods, config.times),
-            "per_trajectory": {m: {n: {"per_t": r["per_t"], "mean": r["mean"], "failed": r["failed"]}
-                                   for n, r in rs.items()} for m, rs in reports.items()},
-            "sampling_floor": {n: r["sampling_floor"] for n, r in reports["cvae1"].items()},
-            "conventions": next(iter(reports["cvae1"].values()))["conventions"],
-        }
-
+        results["evaluation"] = _evaluate(targets, holdout, distill, preds, work, config)
     with clock.stage("latent_anatomy", log):
-        anatomy = {}
-        model, cfg = models["cvae1"]
-        kwargs = dict(title="C-VAE-I", num_surface=cfg.data.num_surface, seed=config.seed)
-        try:
-            anatomy["cvae1"] = latent_anatomy(model, [s.traj for s in holdout], **kwargs,
-                                              figure=out / "fig11_latent_space.png" if config.figures else None)
-        except Exception as exc:  # a figure must not cost the numbers
-            notes.append(f"Fig. 11 not drawn: {type(exc).__name__}: {exc}")
-            anatomy["cvae1"] = latent_anatomy(model, [s.traj for s in holdout], **kwargs)
-        model, cfg = models["vae"]
-        anatomy["vae"] = latent_anatomy(model, [s.traj for s in holdout], out_dir=None, title="VAE",
-                                        num_surface=cfg.data.num_surface, seed=config.seed, use_umap=False)
-        results["latent_anatomy"] = anatomy
-        results["figures"] = list(anatomy["cvae1"]["plots"].values())
-
+        results["latent_anatomy"] = _anatomy(models, holdout, out, config, notes)
     results["environment"] = {"device": str(torch_device), "torch": torch.__version__, "warp": wp.__version__,
                               "python": platform.python_version(),
                               "gpu": torch.cuda.get_device_name(torch_device) if torch_device.type == "cuda" else None}
-    notes.append("latent interp. (VAE): the plain VAE (same backbone as the C-VAEs) encodes the ground-truth stage 0 "
-                 "and LAST stage and decodes their linear blend; it is given the final shape, the C-VAEs only stage 0")
+    notes.append("latent interp. (VAE): the plain VAE (same backbone and training budget as C-VAE-I) encodes the "
+                 "ground-truth stage 0 and LAST stage and decodes their linear blend; it is given the final shape, the "
+                 "C-VAEs only stage 0")
     notes.append("each prediction is scored against the ground-truth stage nearest in t (t = 0 -> the last stage, "
                  "whose measured t is > 0)")
     if distill is not None:
-        notes.append(f"{distill.name} is also a training shape of C-VAE-I and the VAE; C-VAE-II is trained on it alone")
+        notes.append(f"{distill.name}: C-VAE-II is trained on its trajectory alone"
+                     + (" (C-VAE-I and the VAE never saw it)" if distill.role == "holdout" else
+                        " (also a training shape of C-VAE-I and the VAE)"))
+    results["checks"] = check_results(results)
+    results["figures"] = []
     _write_results(out, results, clock)  # the numbers are safe before any figure is drawn
-
     if config.figures:
         with clock.stage("figures", log):
-            shown = [s for s in holdout if s.kind == "real"][:1] or holdout[:1]
-            for s, model_kind in [*((h, "cvae1") for h in shown), *([(distill, "cvae2")] if distill else [])]:
-                rows = {_SHORT[m]: preds / m / s.name for m in (model_kind, "baseline")}
-                try:
-                    results["figures"].append(_fig9b(out / f"fig9b_{model_kind}_{s.name}.png", s,
-                                                     preds / model_kind / s.name, model_kind, config, warp_device))
-                    results["figures"].append(_montage(out / f"compare_{s.name}.png", s.traj, rows, config.times,
-                                                       config.render_size, warp_device))
-                except Exception as exc:  # a figure must not cost the numbers
-                    notes.append(f"figure of {s.name} not drawn: {type(exc).__name__}: {exc}")
+            _figures(results, holdout, distill, preds, out, config, warp_device, notes)
         _write_results(out, results, clock)
     log(f"[experiment] done in {clock.total():.1f} s: {out / 'results.json'}, {out / 'results.md'}")
     return results
 
 
+def _torch_device(device: str | None) -> torch.device:
+    from .train import resolve_device
+
+    return resolve_device(device)
+
+
+def _step_summary(step: int, results: dict, clock: _Clock, log: Callable[[str], None]) -> dict:
+    summary = {"step": step, "name": STEPS[step], "timings_s": {**clock.seconds, "total": clock.total()},
+               "notes": results["notes"]}
+    if "training" in results:
+        summary["training"] = {k: {"steps": v["steps"], "seconds": v["seconds"], "final": v["final"]}
+                               for k, v in results["training"].items()}
+    log(f"[experiment] step {step} ({STEPS[step]}) done in {clock.total():.1f} s")
+    return summary
+
+
+def _dataset(kind: str, cfg: TrainConfig, config: ExperimentConfig, work: Path, distill: _Shape | None,
+             not_trained: tuple[str, ...]):
+    """The training items of one model: C-VAE-I and the VAE every training shape (not a held-out distilled
+    one), C-VAE-II the distilled trajectory alone; preloaded, so that data-loader workers share the arrays."""
+    from .data import TrajectoryDataset
+
+    kw = dict(num_surface=cfg.data.num_surface, num_queries=cfg.data.num_queries, near_fraction=cfg.data.near_fraction,
+              num_on_surface=cfg.data.num_on_surface, fresh_fraction=cfg.data.fresh_fraction, seed=cfg.seed,
+              cache=True)
+    if kind == "cvae2":
+        data = TrajectoryDataset(work / "data", split="test", holdout=(distill.name,), repeats=config.distill_repeats,
+                                 **kw)
+    else:
+        data = TrajectoryDataset(work / "data", split="train", holdout=not_trained, repeats=config.repeats, **kw)
+    data.preload()
+    return data
+
+
+def _generate(targets: dict[str, list[_Shape]], models: dict, preds: Path, config: ExperimentConfig) -> None:
+    from .baseline import latent_interpolation
+    from .data import read_trajectory
+    from .inference import predict_times
+
+    for method, trajs in targets.items():
+        for s in trajs:
+            folder = preds / method / s.name
+            if _predicted(folder, config.times):
+                continue
+            if method == "baseline":
+                model, cfg = models["vae"]
+                latent_interpolation(model, s.traj, config.times, folder, resolution=config.resolution,
+                                     num_surface=cfg.data.num_surface, seed=config.seed)
+            else:
+                model, cfg = models[method]
+                predict_times(model, read_trajectory(s.traj).load_stage(0), config.times, folder,
+                              num_surface=cfg.data.num_surface, resolution=config.resolution, seed=config.seed,
+                              name=s.name, meta={"method": method})
+
+
+_GROUPS = {"humanoid": "held-out humanoids", "blob": "held-out blobs", "real": "held-out real"}
+
+
+def _evaluate(targets: dict[str, list[_Shape]], holdout: list[_Shape], distill: _Shape | None, preds: Path, work: Path,
+              config: ExperimentConfig) -> dict:
+    jobs, reports = [], {m: {} for m in targets}
+    (work / "eval").mkdir(parents=True, exist_ok=True)
+    for method, trajs in targets.items():
+        for s in trajs:
+            path = work / "eval" / f"{method}__{s.name}.json"
+            if path.is_file():
+                reports[method][s.name] = json.loads(path.read_text())
+            else:
+                jobs.append((method, s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
+                                              "n_points": config.n_points, "n_emd": config.n_emd,
+                                              "seed": config.seed, "out": str(path)}))
+    if config.eval_workers > 1 and len(jobs) > 1:
+        ctx = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=min(config.eval_workers, len(jobs)), mp_context=ctx) as pool:
+            futures = {pool.submit(_eval_job, job): (m, n) for m, n, job in jobs}
+            for fut in cf.as_completed(futures):
+                m, n = futures[fut]
+                reports[m][n] = fut.result()
+    else:
+        for m, n, job in jobs:
+            reports[m][n] = _eval_job(job)
+    groups = {label: [s.name for s in holdout if s.kind == kind] for kind, label in _GROUPS.items()}
+    methods = {g: ["cvae1", "baseline"] for g in groups}
+    if distill is not None:
+        groups[f"distilled: {distill.name}"] = [distill.name]
+        methods[f"distilled: {distill.name}"] = [m for m in ("cvae2", "cvae1", "baseline") if targets[m]]
+    groups = {g: names for g, names in groups.items() if names}
+    return {
+        "groups": _aggregate(reports, groups, methods, config.times),
+        "per_trajectory": {m: {n: {"per_t": r["per_t"], "mean": r["mean"], "failed": r["failed"]}
+                               for n, r in rs.items()} for m, rs in reports.items()},
+        "sampling_floor": {n: r["sampling_floor"] for n, r in reports["cvae1"].items()},
+        "conventions": next(iter(reports["cvae1"].values()))["conventions"],
+    }
+
+
+def _anatomy(models: dict, holdout: list[_Shape], out: Path, config: ExperimentConfig, notes: list[str]) -> dict:
+    from .latent import latent_anatomy
+
+    anatomy = {}
+    model, cfg = models["cvae1"]
+    kwargs = dict(title="C-VAE-I", num_surface=cfg.data.num_surface, seed=config.seed)
+    trajs = [s.traj for s in holdout]
+    try:
+        anatomy["cvae1"] = latent_anatomy(model, trajs, **kwargs,
+                                          figure=out / "fig11_latent_space.png" if config.figures else None)
+    except Exception as exc:  # a figure must not cost the numbers
+        notes.append(f"Fig. 11 not drawn: {type(exc).__name__}: {exc}")
+        anatomy["cvae1"] = latent_anatomy(model, trajs, **kwargs)
+    model, cfg = models["vae"]
+    anatomy["vae"] = latent_anatomy(model, trajs, title="VAE", num_surface=cfg.data.num_surface, seed=config.seed,
+                                    use_umap=False)
+    return anatomy
+
+
+def _figures(results: dict, holdout: list[_Shape], distill: _Shape | None, preds: Path, out: Path,
+             config: ExperimentConfig, device: str | None, notes: list[str]) -> None:
+    """At most five PNGs beside results.json and results.md (Fig. 11 is drawn with the anatomy)."""
+    figs = results["figures"]
+    if "fig11" in results["latent_anatomy"]["cvae1"].get("plots", {}):
+        figs.append(results["latent_anatomy"]["cvae1"]["plots"]["fig11"])
+    picks = ([s for s in holdout if s.kind == "real" and s is not distill][:1]
+             + [s for s in holdout if s.kind == "humanoid"][:1]) or holdout[:1]
+    shown = [(s, "cvae1") for s in picks]
+    if distill is not None and "cvae2" in results["training"]:
+        shown.insert(0, (distill, "cvae2"))
+    for s, kind in shown:
+        rows = {_SHORT[m]: preds / m / s.name for m in (kind, "baseline")}
+        try:
+            figs.append(_montage(out / f"compare_{s.name}.png", s.traj, rows, config.times, config.render_size, device))
+        except Exception as exc:  # a figure must not cost the numbers
+            notes.append(f"figure of {s.name} not drawn: {type(exc).__name__}: {exc}")
+    for s in picks[:1]:
+        try:
+            figs.append(_fig9b(out / f"fig9b_cvae1_{s.name}.png", s, preds / "cvae1" / s.name, "cvae1", config, device))
+        except Exception as exc:  # a figure must not cost the numbers
+            notes.append(f"Fig. 9b of {s.name} not drawn: {type(exc).__name__}: {exc}")
+    try:
+        figs.append(_training_figure(out / "training.png", results["training"]))
+    except Exception as exc:  # a figure must not cost the numbers
+        notes.append(f"training curves not drawn: {type(exc).__name__}: {exc}")
+
+
+def _training_figure(path: Path, training: dict) -> str:
+    """L_tsdf decoded from posterior samples (training) and from the posterior mean (eval mode), per model."""
+    from vnc_warp.plot import line_plot
+
+    series = {}
+    for kind, tr in training.items():
+        for key, label in (("tsdf", "train, sampled code"), ("eval_tsdf", "eval, mean code")):
+            pts = [(st, v) for st, v in tr["curve"][key] if v is not None and v > 0]
+            if pts:
+                x, y = np.asarray(pts, dtype=np.float64).T
+                series[f"{MODELS[kind].split(' ')[0]}: {label}"] = (x, np.log10(y))
+    line_plot(series, title="L_tsdf during training: sampled codes (training) vs the posterior mean (inference)",
+              xlabel="step", ylabel="log10 L_tsdf", path=path, size=(900, 520))
+    return str(path)
+
+
 def _write_results(out: Path, results: dict, clock: _Clock) -> None:
-    results["timings_s"] = {**clock.seconds, "total": clock.total()}
+    out.mkdir(parents=True, exist_ok=True)
+    results["timings_s"] = clock.totals()
+    results["timings_this_call_s"] = {**clock.seconds, "total": clock.total()}
     for name, text in (("results.json", json.dumps(_finite(results), indent=1)),
                        ("results.md", results_markdown(results))):
         tmp = out / f"{name}.tmp"
@@ -910,51 +1151,135 @@ def _fmt(x: Any, digits: int = 3) -> str:
     return "n/a" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
 
 
+def _ok(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def check_results(results: dict) -> list[dict]:
+    """The "done when" claims of issue 24, each measured against this run's numbers (never asserted).
+
+    Returns:
+        One ``{"claim", "target", "value", "met"}`` per claim: C-VAE-II on the distilled trajectory (CD within 3x
+        the sampling floor of the scored stage and below latent interpolation at every t, NCE at t = 1 <= 0.3);
+        C-VAE-I (no failed decode; below latent interpolation at every t on the held-out real meshes and the
+        held-out humanoids); the radial structure (pooled r(norm, t) >= 0.5; one principal component with
+        r >= 0.8 inside every held-out trajectory, one sign for all).
+    """
+    checks = []
+    groups = results["evaluation"]["groups"]
+
+    def add(claim: str, target: str, value: Any, met: bool) -> None:
+        checks.append({"claim": claim, "target": target, "value": value, "met": bool(met)})
+
+    for group, rows in groups.items():
+        if not group.startswith("distilled") or "cvae2" not in rows:
+            continue
+        mine, base = rows["cvae2"]["per_t"], rows["baseline"]["per_t"]
+        ratios = [r["cd_x1e4"] / r["floor"]["cd_x1e4"] if _ok(r["cd_x1e4"]) and _ok(r["floor"]["cd_x1e4"])
+                  else math.nan for r in mine]
+        add(f"C-VAE-II ({group}): CD <= 3x sampling floor at every t", "<= 3 at each t",
+            {r["t"]: x for r, x in zip(mine, ratios)}, all(_ok(x) and x <= 3.0 for x in ratios))
+        add(f"C-VAE-II ({group}): CD below latent interpolation at every t", "C-VAE-II < interp. at each t",
+            {a["t"]: [a["cd_x1e4"], b["cd_x1e4"]] for a, b in zip(mine, base)},
+            all(_ok(a["cd_x1e4"]) and (not _ok(b["cd_x1e4"]) or a["cd_x1e4"] < b["cd_x1e4"]) for a, b in zip(mine, base)))
+        at1 = next((r for r in mine if r["t"] == 1.0), None)
+        if at1 is not None:
+            add(f"C-VAE-II ({group}): NCE at t = 1", "<= 0.3 rad", at1["nce"], _ok(at1["nce"]) and at1["nce"] <= 0.3)
+    failed = sum(rows["cvae1"]["failed"] for rows in groups.values() if "cvae1" in rows)
+    add("C-VAE-I: failed decodes", "0", failed, failed == 0)
+    for group in ("held-out real", "held-out humanoids"):
+        if group not in groups:
+            continue
+        mine, base = groups[group]["cvae1"]["per_t"], groups[group]["baseline"]["per_t"]
+        add(f"C-VAE-I ({group}): CD below latent interpolation at every t", "C-VAE-I < interp. at each t",
+            {a["t"]: [a["cd_x1e4"], b["cd_x1e4"]] for a, b in zip(mine, base)},
+            all(_ok(a["cd_x1e4"]) and (not _ok(b["cd_x1e4"]) or a["cd_x1e4"] < b["cd_x1e4"]) for a, b in zip(mine, base)))
+    anatomy = results.get("latent_anatomy", {}).get("cvae1")
+    if anatomy is not None:
+        r = anatomy["norm_t_pearson"]
+        add("radial structure: pooled r(latent norm, t) on held-out trajectories", ">= 0.5", r, _ok(r) and r >= 0.5)
+        best = anatomy["best_pc"]
+        add(f"radial structure: PC{best['pc']} orders every held-out trajectory by t (one sign)",
+            "r >= 0.8 in every trajectory", best.get("within"), _ok(best.get("min_within")) and best["min_within"] >= 0.8)
+    return checks
+
+
+def _cd_table(groups: dict, times: list[float], key: str, title: str, part: str | None) -> list[str]:
+    lines = [f"## {title} (lower is better)", "",
+             "| trajectories | method | " + " | ".join(f"t={t:g}" for t in times) + " | failed |",
+             "|---|---|" + "---|" * (len(times) + 1)]
+    for group, rows in groups.items():
+        for method, row in rows.items():
+            by_t = {r["t"]: (r if part is None else r[part]) for r in row["per_t"]}
+            cells = [_fmt(by_t[t][key]) if t in by_t else "n/a" for t in times]
+            lines.append(f"| {group} ({len(row['trajectories'])}) | {METHODS[method]} | " + " | ".join(cells)
+                         + f" | {row['failed']} |")
+        floors = {r["t"]: (r["floor"] if part != "unit_box" else r["floor"]["unit_box"])[key]
+                  for r in next(iter(rows.values()))["per_t"]}
+        lines.append(f"| {group} | *sampling floor* | " + " | ".join(_fmt(floors.get(t)) for t in times) + " | |")
+    return lines + [""]
+
+
 def results_markdown(results: dict) -> str:
     """The tables of a ``results.json`` as Markdown."""
     exp = results["experiment"]
-    lines = [f"# C-VAE experiment `{exp['name']}`", ""]
+    lines = [f"# C-VAE experiment `{exp['name']}`", "",
+             f"Marching cubes {exp['resolution']}^3; CD and NCE on {exp['n_points']:,} points per surface, EMD on "
+             f"{exp['n_emd']:,}; package frame (the ground truth's stage-0 box at max extent 1.8) unless marked. "
+             "Each group's last row is the sampling floor: the scored ground-truth stages against themselves "
+             "resampled at the same counts.", ""]
+    checks = results.get("checks", [])
+    if checks:
+        lines += ["## Checks (issue 24, done when)", "", "| claim | target | value | met |", "|---|---|---|---|"]
+        for c in checks:
+            value = c["value"]
+            if isinstance(value, dict):
+                value = ", ".join(f"{k}: " + ("/".join(_fmt(x, 2) for x in v) if isinstance(v, list) else _fmt(v, 2))
+                                  for k, v in value.items())
+            elif isinstance(value, float):
+                value = _fmt(value)
+            lines.append(f"| {c['claim']} | {c['target']} | {value} | {'yes' if c['met'] else '**no**'} |")
+        lines.append("")
     groups = results["evaluation"]["groups"]
     times = sorted(exp["times"], reverse=True)
-    for key, title in (("cd_x1e4", "CD x1e-4"), ("emd_x1e2", "EMD x1e-2"), ("nce", "NCE (rad)")):
-        lines += [f"## {title} (lower is better)", "",
-                  "| trajectories | method | " + " | ".join(f"t={t:g}" for t in times) + " | mean | failed |",
-                  "|---|---|" + "---|" * (len(times) + 2)]
-        for group, rows in groups.items():
-            for method, row in rows.items():
-                by_t = {r["t"]: r for r in row["per_t"]}
-                cells = [_fmt(by_t[t][key]) if t in by_t else "n/a" for t in times]
-                lines.append(f"| {group} ({len(row['trajectories'])}) | {METHODS[method]} | " + " | ".join(cells)
-                             + f" | {_fmt(row['mean'][key])} | {row['failed']} |")
-        lines.append("")
-    floors = list(results["evaluation"]["sampling_floor"].values())
-    if floors:
-        lines += ["Sampling floor (GT stage 0 against itself resampled), mean over the evaluated trajectories: "
-                  + ", ".join(f"{k} {_fmt(float(np.mean([f[k] for f in floors if f[k] is not None])))}"
-                              for k in ("cd_x1e4", "emd_x1e2", "nce")), ""]
+    lines += _cd_table(groups, times, "cd_x1e4", "CD x1e-4, all components", None)
+    lines += _cd_table(groups, times, "cd_x1e4", "CD x1e-4, largest component", "largest")
+    lines += _cd_table(groups, times, "emd_x1e2", "EMD x1e-2, all components", None)
+    lines += _cd_table(groups, times, "nce", "NCE (rad), all components", None)
+    lines += _cd_table(groups, times, "cd_x1e4", "Unit box: CD x1e-4, all components", "unit_box")
+    lines += _cd_table(groups, times, "emd_x1e2", "Unit box: EMD x1e-2, all components", "unit_box")
     lines += ["## Training", "", "| model | parameters (trainable) | items | steps | batch | seconds | samples/s "
-              "(end to end) | samples/s (steady) | final loss | final L_tsdf |", "|---" * 10 + "|"]
+              "(steady) | L_tsdf (sampled code) | L_tsdf (eval, mean code) | L_surf | L_normal |", "|---" * 11 + "|"]
     for kind, tr in results["training"].items():
-        p = tr.get("parameters", {})
+        p, f = tr.get("parameters", {}), tr["final"]
         lines.append(f"| {MODELS[kind]} | {p.get('total', 0):,} ({p.get('trainable', 0):,}) | {tr['items']} | "
                      f"{tr['steps']} | {tr['batch_size']} | {_fmt(tr['seconds'], 1)} | "
-                     f"{_fmt(tr['samples_per_s'], 1)} | "
-                     f"{_fmt(tr['steady_samples_per_s'], 1)} | {_fmt(tr['final'].get('loss'), 4)} | "
-                     f"{_fmt(tr['final'].get('tsdf'), 4)} |")
-    lines += ["", "## Latent anatomy (held-out trajectories, every stage)", "",
-              "| model | encoding | samples | r(norm, t) | r(norm, t) within trajectory | abs r(PC1, t) | "
-              "r(PC1, t) within trajectory | PC1, PC2 variance |", "|---|---|---|---|---|---|---|---|"]
+                     f"{_fmt(tr['steady_samples_per_s'], 1)} | {_fmt(f.get('tsdf'), 5)} | {_fmt(f.get('eval_tsdf'), 5)} | "
+                     f"{_fmt(f.get('surf'), 5)} | {_fmt(f.get('normal'), 4)} |")
+    lines += ["", "L_tsdf columns: mean of the last tenth of the run; the eval column decodes the posterior mean "
+              "in eval mode, as inference does.", "",
+              "## Latent anatomy (held-out trajectories, every stage)", "",
+              "| model | encoding | samples | r(norm, t) pooled | r(norm, t) within: mean / min | best PC | "
+              "its r within: min | its r pooled | PC1 r within: mean | variance of PC1..5 |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for kind, rep in results["latent_anatomy"].items():
+        best = rep["best_pc"]
         ev = ", ".join(_fmt(v, 2) for v in rep["explained_variance_ratio"])
         lines.append(f"| {MODELS[kind]} | {rep['encoding']} | {rep['n']} | {_fmt(rep['norm_t_pearson'])} | "
-                     f"{_fmt(rep.get('norm_t_pearson_within'))} | {_fmt(rep['pc1_t_abs_pearson'])} | "
+                     f"{_fmt(rep.get('norm_t_pearson_within'))} / {_fmt(rep.get('norm_t_min_within'))} | "
+                     f"PC{best['pc']} | {_fmt(best.get('min_within'))} | {_fmt(best['pooled_r'])} | "
                      f"{_fmt(rep.get('pc1_t_pearson_within'))} | {ev} |")
+    umap = [k for k, rep in results["latent_anatomy"].items() if rep.get("umap")]
+    lines += ["", "UMAP (max-pooled, Fig. 11a): " + (", ".join(
+        f"{MODELS[k]} r(distance from centre, t) = {_fmt(results['latent_anatomy'][k]['umap_radius_t_pearson'])}"
+        for k in umap) if umap else "umap-learn not installed; Fig. 11a shows PCA instead.")]
     t = results["timings_s"]
-    lines += ["", "## Wall time (s)", "", "| " + " | ".join(t) + " |", "|" + "---|" * len(t),
+    lines += ["", "## Wall time (s, summed over every call on the work folder)", "", "| " + " | ".join(t) + " |", "|" + "---|" * len(t),
               "| " + " | ".join(_fmt(v, 1) for v in t.values()) + " |", ""]
     flows = results["flows"]
     done = [f for f in flows.values() if f.get("status") in ("done", "skipped (done)")]
-    lines += [f"Flows: {len(done)} of {len(flows)} trajectories, {exp['stages']} stages each; "
-              f"environment: {results['environment']}", ""]
+    lines += [f"Flows: {len(done)} of {len(flows)} trajectories, {exp['stages']} stages each"
+              + (f" ({exp['distill_mesh']}: {exp['distill_stages']})" if exp.get("distill_stages") else "")
+              + f"; environment: {results['environment']}", ""]
     lines += ["## Notes", ""] + [f"- {n}" for n in results["notes"]] + [""]
     return "\n".join(lines)

@@ -20,7 +20,7 @@ from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
 from .checkpoint import load_model
 from .train import resolve_device
 
-__all__ = ["surface_condition", "decode_sdf_grid", "extract_mesh", "decode_mesh", "write_predictions", "predict_times",
+__all__ = ["surface_condition", "sdf_grid_tensor", "decode_sdf_grid", "extract_mesh", "decode_mesh", "write_predictions", "predict_times",
            "generate"]
 
 
@@ -56,22 +56,9 @@ def surface_condition(mesh: Mesh, *, num_points: int, seed: int = 0,
 
 
 @torch.no_grad()
-def decode_sdf_grid(model: torch.nn.Module, latents: torch.Tensor, *, resolution: int = 128, bound: float = 1.0,
-                    chunk_size: int | None = None) -> np.ndarray:
-    """SDF of one latent set on the regular grid ``linspace(-bound, bound, resolution)^3``.
-
-    The latent transformer runs once; the query decoder runs over the grid in chunks.
-
-    Args:
-        model: a VecSet model (:mod:`vnc_warp.training.model`).
-        latents: (M, C) or (1, M, C) latents.
-        resolution: samples per axis.
-        bound: half-width of the grid, normalised units.
-        chunk_size: queries per decoder call (default: the model's).
-
-    Returns:
-        (resolution, resolution, resolution) float32 SDF, indexed [x, y, z].
-    """
+def sdf_grid_tensor(model: torch.nn.Module, latents: torch.Tensor, *, resolution: int = 128, bound: float = 1.0,
+                    chunk_size: int | None = None, amp: bool | None = None) -> torch.Tensor:
+    """:func:`decode_sdf_grid` as a float32 tensor on the model's device (no host copy)."""
     if resolution < 2:
         raise ValueError(f"decode_sdf_grid: resolution must be >= 2, got {resolution}")
     device = _model_device(model)
@@ -80,19 +67,78 @@ def decode_sdf_grid(model: torch.nn.Module, latents: torch.Tensor, *, resolution
         z = z.unsqueeze(0)
     if z.ndim != 3 or z.shape[0] != 1:
         raise ValueError(f"decode_sdf_grid: latents must be (M, C) or (1, M, C), got {tuple(latents.shape)}")
-    tokens = model.latent_tokens(z)
+    if amp is None:
+        amp = device.type == "cuda" and torch.cuda.is_bf16_supported()
     axis = torch.linspace(-bound, bound, resolution, device=device)
-    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(1, -1, 3)
-    sdf = model.decoder.queries(tokens, grid, chunk_size=chunk_size)
-    return sdf.reshape(resolution, resolution, resolution).float().cpu().numpy()
+    sdf = torch.empty(resolution**3, device=device)
+    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
+        tokens = model.latent_tokens(z)
+        # the grid is made slab by slab along x, so a 256^3 decode never holds all 16.7M query points
+        slab = resolution * resolution
+        for i in range(resolution):
+            yz = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), dim=-1).reshape(-1, 2)
+            q = torch.cat([axis[i].expand(slab, 1), yz], dim=1).unsqueeze(0)
+            sdf[i * slab:(i + 1) * slab] = model.decoder.queries(tokens, q, chunk_size=chunk_size)[0].float()
+    return sdf.reshape(resolution, resolution, resolution)
 
 
-def extract_mesh(sdf: np.ndarray, *, bound: float = 1.0, level: float = 0.0, center: Sequence[float] | None = None,
-                 scale: float | None = None, name: str = "decoded") -> Mesh:
-    """Marching cubes (scikit-image) on a grid SDF, negative inside, with outward winding.
+def decode_sdf_grid(model: torch.nn.Module, latents: torch.Tensor, *, resolution: int = 128, bound: float = 1.0,
+                    chunk_size: int | None = None, amp: bool | None = None) -> np.ndarray:
+    """SDF of one latent set on the regular grid ``linspace(-bound, bound, resolution)^3``.
+
+    The latent transformer runs once; the query decoder runs over the grid in chunks, every grid point decoded
+    (no coarse-to-fine shortcut that could miss a fragment).
 
     Args:
-        sdf: (R, R, R) samples on ``linspace(-bound, bound, R)^3``, indexed [x, y, z].
+        model: a VecSet model (:mod:`vnc_warp.training.model`).
+        latents: (M, C) or (1, M, C) latents.
+        resolution: samples per axis.
+        bound: half-width of the grid, normalised units.
+        chunk_size: queries per decoder call (default: the model's).
+        amp: bf16 autocast (the SDF head stays float32, as in training); None: on CUDA when supported.
+
+    Returns:
+        (resolution, resolution, resolution) float32 SDF, indexed [x, y, z].
+    """
+    return sdf_grid_tensor(model, latents, resolution=resolution, bound=bound, chunk_size=chunk_size,
+                           amp=amp).cpu().numpy()
+
+
+def _marching_cubes(sdf: np.ndarray | torch.Tensor, level: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (float64, on ``[-bound, bound]^3``) and faces wound outward for a field negative inside.
+
+    A torch tensor runs through Warp's marching cubes on its device (in place on a GPU); a NumPy array
+    through scikit-image's.
+    """
+    if isinstance(sdf, torch.Tensor):
+        import warp as wp
+        import warp.geometry
+
+        from vnc_warp._device import get_device
+
+        get_device(sdf.device)  # Warp initialised (quietly) before it reads the tensor
+        field = wp.from_torch((sdf.float() - level).contiguous(), dtype=wp.float32)
+        stream = wp.stream_from_torch(sdf.device) if sdf.is_cuda else None
+        with wp.ScopedStream(stream):
+            verts, idx = warp.geometry.IsoSurfaceMarchingCubes.extract(field, 0.0, lower=(-bound,) * 3,
+                                                                        upper=(bound,) * 3)
+        # Warp winds faces outward for a field that grows outward (checked against a sphere's volume)
+        return verts.numpy().astype(np.float64), idx.numpy().reshape(-1, 3).astype(np.int64)
+    from skimage.measure import marching_cubes
+
+    step = 2.0 * bound / (sdf.shape[0] - 1)
+    # 'ascent' winds faces so that normals point toward increasing values: outward for an SDF.
+    verts, faces, _, _ = marching_cubes(sdf, level=level, spacing=(step, step, step), gradient_direction="ascent")
+    return verts - bound, faces
+
+
+def extract_mesh(sdf: np.ndarray | torch.Tensor, *, bound: float = 1.0, level: float = 0.0,
+                 center: Sequence[float] | None = None, scale: float | None = None, name: str = "decoded") -> Mesh:
+    """Marching cubes on a grid SDF, negative inside, with outward winding.
+
+    Args:
+        sdf: (R, R, R) samples on ``linspace(-bound, bound, R)^3``, indexed [x, y, z]: NumPy (scikit-image's
+            marching cubes) or a torch tensor (Warp's, on the tensor's device).
         bound: half-width of the grid.
         level: iso-value.
         center, scale: undo the normalisation, ``x = x_norm / scale + center`` (both or neither).
@@ -101,18 +147,15 @@ def extract_mesh(sdf: np.ndarray, *, bound: float = 1.0, level: float = 0.0, cen
     Raises:
         ValueError: the grid has no crossing of ``level``.
     """
-    from skimage.measure import marching_cubes
     import trimesh
 
-    sdf = np.asarray(sdf, dtype=np.float32)
+    if not isinstance(sdf, torch.Tensor):
+        sdf = np.asarray(sdf, dtype=np.float32)
     lo, hi = float(sdf.min()), float(sdf.max())
     if not lo < level < hi:
         raise ValueError(f"{name}: the decoded SDF has no {level} crossing on the grid (min {lo:.4g}, max {hi:.4g}); "
                          "nothing to mesh")
-    step = 2.0 * bound / (sdf.shape[0] - 1)
-    # 'ascent' winds faces so that normals point toward increasing values: outward for an SDF.
-    verts, faces, _, _ = marching_cubes(sdf, level=level, spacing=(step, step, step), gradient_direction="ascent")
-    verts = verts - bound
+    verts, faces = _marching_cubes(sdf, level, bound)
     if (center is None) != (scale is None):
         raise ValueError("extract_mesh: give both center and scale, or neither")
     if scale is not None:
@@ -163,7 +206,7 @@ def decode_mesh(model: torch.nn.Module, latents_or_cond: torch.Tensor | np.ndarr
             raise ValueError(f"decode_mesh: with t, the condition must be an (N, 6) surface sample, "
                              f"got {tuple(x.shape)}")
         latents, _ = model.encode(surface, torch.tensor([float(t)], device=device), sample=False)
-    sdf = decode_sdf_grid(model, latents, resolution=resolution, bound=bound, chunk_size=chunk_size)
+    sdf = sdf_grid_tensor(model, latents, resolution=resolution, bound=bound, chunk_size=chunk_size)
     return extract_mesh(sdf, bound=bound, center=center, scale=scale, name=name)
 
 

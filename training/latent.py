@@ -1,11 +1,14 @@
-"""Anatomy of the C-VAE latent space (Sec. 4.3, Fig. 11): PCA of mean-pooled latents, UMAP of
-max-pooled latents, and how both line up with the normalized evolution time ``t`` (Eq. (7)).
+"""Anatomy of the C-VAE latent space (Sec. 4.3, Fig. 11): how latents line up with the normalized time ``t``
+(Eq. (7)), within each trajectory and across them.
 
-The radial latent structure of Sec. 3.3 predicts that latent codes shrink toward the origin as
-``t -> 0``: :func:`analyze_latents` reports the Pearson correlation of the latent norm with ``t`` and
-``|r|`` of the first principal component of the mean-pooled latents with ``t`` (the "parallel
-structure" of Fig. 11b; the sign of a principal axis is arbitrary), and writes scatter plots coloured
-by ``t`` (matplotlib when importable, else Pillow, so a plot is always produced).
+The radial latent structure of Sec. 3.3 says that codes gather at the origin as ``t -> 0`` and reach the periphery
+at ``t = 1``; Fig. 11b adds a shared direction along which every trajectory is ordered by t. :func:`analyze_latents`
+measures both: the Pearson correlation of the latent norm with ``t`` (pooled over every sample, and within each
+trajectory), and, for each of the first principal components of the mean-pooled latents, its correlation with ``t``
+within every trajectory, with one sign for all (a direction shared by the trajectories); the best component is
+the one whose weakest trajectory is ordered best. With umap-learn installed, UMAP of the max-pooled latents
+(Fig. 11a) and the correlation of the distance from its centre with ``t``. Plots go through
+:func:`vnc_warp.plot.scatter_plot`.
 """
 
 from __future__ import annotations
@@ -15,10 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["analyze_latents", "latent_anatomy", "pca", "pearson", "scatter_png", "trajectory_latents"]
+from vnc_warp.stats import pca, pearson
 
-# viridis at 0, 1/4, 1/2, 3/4, 1 (RGB), for the Pillow fallback
-_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=np.float64)
+__all__ = ["analyze_latents", "latent_anatomy", "pca", "pearson", "trajectory_latents"]
 
 
 def _numpy(x) -> np.ndarray:
@@ -27,149 +29,51 @@ def _numpy(x) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
-def pearson(x, y) -> float:
-    """Pearson correlation coefficient of two (N,) sequences; NaN when either is constant."""
-    x, y = _numpy(x).ravel(), _numpy(y).ravel()
-    if x.shape != y.shape or x.size < 2:
-        raise ValueError(f"pearson: need two equal-length sequences of >= 2 values, got {x.shape} and {y.shape}")
-    x, y = x - x.mean(), y - y.mean()
-    den = np.sqrt((x * x).sum() * (y * y).sum())
-    return float((x * y).sum() / den) if den > 0.0 else float("nan")
+def _scatter(path: Path, xy: np.ndarray, t: np.ndarray, *, title: str, xlabel: str, ylabel: str) -> str:
+    from vnc_warp.plot import scatter_plot
+
+    order = np.argsort(t, kind="stable")  # high t drawn last, on top
+    scatter_plot(xy[order, 0], xy[order, 1], c=t[order], clabel="t", title=title, xlabel=xlabel, ylabel=ylabel,
+                 path=path, size=(640, 480))
+    return str(path)
 
 
-def pca(x, k: int = 2) -> dict[str, np.ndarray]:
-    """Principal component analysis by SVD of the centred data.
-
-    Args:
-        x: (N, C) samples.
-        k: number of components (<= min(N, C)).
-
-    Returns:
-        ``scores`` (N, k), ``components`` (k, C) unit rows, ``explained_variance_ratio`` (k,), ``mean`` (C,).
-    """
-    x = _numpy(x)
-    if x.ndim != 2 or not 1 <= k <= min(x.shape):
-        raise ValueError(f"pca: need (N, C) data and 1 <= k <= min(N, C), got shape {x.shape}, k={k}")
-    mean = x.mean(axis=0)
-    u, s, vt = np.linalg.svd(x - mean, full_matrices=False)
-    var = s**2
-    total = var.sum()
-    ratio = var[:k] / total if total > 0.0 else np.zeros(k)
-    return {"scores": u[:, :k] * s[:k], "components": vt[:k], "explained_variance_ratio": ratio, "mean": mean}
-
-
-def _viridis(values: np.ndarray) -> np.ndarray:
-    pos = np.clip(values, 0.0, 1.0) * (len(_VIRIDIS) - 1)
-    lo = np.minimum(pos.astype(int), len(_VIRIDIS) - 2)
-    w = (pos - lo)[:, None]
-    return ((1.0 - w) * _VIRIDIS[lo] + w * _VIRIDIS[lo + 1]).round().astype(np.uint8)
-
-
-def _scatter_pillow(path: Path, xy: np.ndarray, values: np.ndarray, title: str, xlabel: str, ylabel: str,
-                    label: str, size: tuple[int, int]) -> None:
-    from PIL import Image, ImageDraw
-
-    w, h = size
-    left, right, top, bottom = 60, w - 90, 30, h - 45
-    img = Image.new("RGB", (w, h), "white")
-    draw = ImageDraw.Draw(img)
-    lo, hi = xy.min(0), xy.max(0)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    lo, span = lo - 0.05 * span, 1.1 * span
-    px = left + (xy[:, 0] - lo[0]) / span[0] * (right - left)
-    py = bottom - (xy[:, 1] - lo[1]) / span[1] * (bottom - top)
-    vmin, vmax = float(values.min()), float(values.max())
-    colors = _viridis((values - vmin) / (vmax - vmin) if vmax > vmin else np.full(values.shape, 0.5))
-    draw.rectangle([left, top, right, bottom], outline="black")
-    for frac in (0.0, 0.5, 1.0):
-        x = left + frac * (right - left)
-        y = bottom - frac * (bottom - top)
-        draw.line([x, bottom, x, bottom + 4], fill="black")
-        draw.text((x - 15, bottom + 6), f"{lo[0] + frac * span[0]:.3g}", fill="black")
-        draw.line([left - 4, y, left, y], fill="black")
-        draw.text((5, y - 5), f"{lo[1] + frac * span[1]:.3g}", fill="black")
-    draw.text(((left + right) // 2 - 4 * len(xlabel), h - 20), xlabel, fill="black")
-    draw.text((5, 8), f"{title}   (y: {ylabel})" if ylabel else title, fill="black")
-    r = 3
-    for i in np.argsort(values, kind="stable"):  # high t drawn last, on top
-        draw.ellipse([px[i] - r, py[i] - r, px[i] + r, py[i] + r], fill=tuple(int(c) for c in colors[i]))
-    bar = _viridis(np.linspace(1.0, 0.0, bottom - top))
-    for k, c in enumerate(bar):
-        draw.line([right + 20, top + k, right + 35, top + k], fill=tuple(int(v) for v in c))
-    draw.text((right + 40, top - 5), f"{vmax:.3g}", fill="black")
-    draw.text((right + 40, bottom - 5), f"{vmin:.3g}", fill="black")
-    draw.text((right + 20, bottom + 6), label, fill="black")
-    img.save(path)
-
-
-def scatter_png(path: str | os.PathLike, xy, values, *, title: str = "", xlabel: str = "", ylabel: str = "",
-                label: str = "t", size: tuple[int, int] = (640, 480), backend: str | None = None) -> str:
-    """Write a 2D scatter plot coloured by ``values`` (viridis) to a PNG.
-
-    Args:
-        path: output ``.png`` path (parent folders created).
-        xy: (N, 2) coordinates.
-        values: (N,) colour values (e.g. ``t``).
-        title, xlabel, ylabel, label: texts (``label`` names the colour bar).
-        size: image size in pixels (width, height).
-        backend: ``"matplotlib"``, ``"pillow"`` or None (matplotlib when importable, else Pillow).
-
-    Returns:
-        The backend used.
-    """
-    xy, values = _numpy(xy), _numpy(values).ravel()
-    if xy.ndim != 2 or xy.shape[1] != 2 or values.shape[0] != xy.shape[0] or xy.shape[0] == 0:
-        raise ValueError(f"scatter_png: need (N, 2) points and (N,) values, got {xy.shape} and {values.shape}")
-    if backend not in (None, "matplotlib", "pillow"):
-        raise ValueError(f"scatter_png: backend must be None, 'matplotlib' or 'pillow', got {backend!r}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if backend in (None, "matplotlib"):
-        try:
-            import matplotlib
-
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-        except ImportError:
-            if backend == "matplotlib":
-                raise
-        else:
-            fig, ax = plt.subplots(figsize=(size[0] / 100, size[1] / 100), dpi=100)
-            order = np.argsort(values, kind="stable")
-            sc = ax.scatter(xy[order, 0], xy[order, 1], c=values[order], cmap="viridis", s=12)
-            fig.colorbar(sc, ax=ax, label=label)
-            ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-            fig.tight_layout()
-            fig.savefig(path)
-            plt.close(fig)
-            return "matplotlib"
-    _scatter_pillow(path, xy, values, title, xlabel, ylabel, label, size)
-    return "pillow"
+def _within(values: np.ndarray, t: np.ndarray, labels: np.ndarray) -> dict[str, float]:
+    """Pearson r of ``values`` with ``t`` inside every group of >= 3 samples."""
+    out = {}
+    for g in np.unique(labels):
+        sel = labels == g
+        if sel.sum() >= 3:
+            out[str(g)] = pearson(values[sel], t[sel])
+    return out
 
 
 def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, seed: int = 0,
-                    use_umap: bool = True, groups=None, prefix: str = "", title: str = "") -> dict:
+                    use_umap: bool = True, groups=None, prefix: str = "", title: str = "",
+                    num_components: int = 5) -> dict:
     """Numbers and plots of the latent anatomy of Fig. 11.
 
     Args:
-        latents: (N, M, C) latent sets (e.g. ``z_ctl`` with M = 2048 tokens) or (N, C) latent vectors;
-            NumPy or torch.
+        latents: (N, M, C) latent sets (e.g. ``z_ctl`` with M tokens) or (N, C) latent vectors; NumPy or torch.
         t: (N,) normalized evolution time of each sample.
-        out_dir: when given, writes ``<prefix>pca_mean_pooled.png`` and (with UMAP)
-            ``<prefix>umap_max_pooled.png`` there.
+        out_dir: when given, writes ``<prefix>pca_mean_pooled.png`` (the best component against the other of
+            the first two) and, with UMAP, ``<prefix>umap_max_pooled.png`` there.
         seed: UMAP random state.
         use_umap: run UMAP on the max-pooled latents when the ``umap`` package is importable.
-        groups: (N,) labels (e.g. the shape of each sample); adds the within-group correlations.
+        groups: (N,) labels (the trajectory of each sample): adds the within-trajectory numbers.
         prefix: file name prefix of the plots.
         title: prefix of the plot titles (e.g. the model).
+        num_components: principal components examined.
 
     Returns:
-        ``{"n", "norm_t_pearson" (r of the Frobenius norm of each latent with t, signed: > 0 is the radial
-        structure), "pc1_t_abs_pearson" (|r| of PC1 of the mean-pooled latents with t),
-        "explained_variance_ratio" ([PC1, PC2]), "umap" (bool), "plots" ({name: path}), "plot_backend"}``;
-        with ``groups`` also ``"norm_t_pearson_within"`` and ``"pc1_t_pearson_within"``: the mean over
-        groups of >= 3 samples of r within each group (PC1 of the pooled PCA, its sign fixed by the
-        pooled correlation with t so that the groups are comparable), NaN when no group has 3 samples.
+        ``n``; ``norm_t_pearson`` (r of each latent's Frobenius norm with t, pooled: > 0 is the radial
+        structure); ``explained_variance_ratio`` and ``pcs``: per component ``{"pc", "variance", "pooled_r",
+        "within", "min_within"}`` with r signed so that the pooled r is >= 0 (``within`` by trajectory,
+        ``min_within`` the weakest); ``best_pc``: the component with the largest ``min_within`` (with
+        groups, else the largest ``|pooled_r|``); ``pc1_t_abs_pearson``; with ``groups`` also
+        ``norm_t_within`` (by trajectory), ``norm_t_pearson_within`` (their mean), ``norm_t_min_within`` and
+        ``pc1_t_pearson_within`` (mean over trajectories); ``umap`` (bool) and, with it,
+        ``umap_radius_t_pearson``; ``plots`` ({name: path}).
     """
     z, t = _numpy(latents), _numpy(t).ravel()
     if z.ndim == 2:
@@ -177,34 +81,45 @@ def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, see
     if z.ndim != 3 or z.shape[0] != t.shape[0] or z.shape[0] < 3:
         raise ValueError(f"analyze_latents: need (N, M, C) or (N, C) latents with N >= 3 and (N,) t, "
                          f"got {z.shape} and {t.shape}")
-    mean_pooled, max_pooled = z.mean(axis=1), z.max(axis=1)
-    k = min(2, *mean_pooled.shape)
-    p = pca(mean_pooled, k)
-    scores = p["scores"] if k == 2 else np.concatenate([p["scores"], np.zeros_like(p["scores"])], axis=1)
-    norms = np.linalg.norm(z.reshape(z.shape[0], -1), axis=1)
-    pc1_r = pearson(scores[:, 0], t)
-    report = {
-        "n": int(z.shape[0]),
-        "norm_t_pearson": pearson(norms, t),
-        "pc1_t_abs_pearson": abs(pc1_r),
-        "explained_variance_ratio": [float(r) for r in p["explained_variance_ratio"]],
-        "umap": False,
-        "plots": {},
-        "plot_backend": None,
-    }
+    labels = None
     if groups is not None:
         labels = np.asarray(groups).ravel()
         if labels.shape != t.shape:
             raise ValueError(f"analyze_latents: groups must be (N,) = {t.shape}, got {labels.shape}")
-        pc1 = scores[:, 0] * (-1.0 if pc1_r < 0.0 else 1.0)
-        within_norm, within_pc1 = [], []
-        for g in np.unique(labels):
-            sel = labels == g
-            if sel.sum() >= 3:
-                within_norm.append(pearson(norms[sel], t[sel]))
-                within_pc1.append(pearson(pc1[sel], t[sel]))
-        report["norm_t_pearson_within"] = float(np.nanmean(within_norm)) if within_norm else float("nan")
-        report["pc1_t_pearson_within"] = float(np.nanmean(within_pc1)) if within_pc1 else float("nan")
+    mean_pooled, max_pooled = z.mean(axis=1), z.max(axis=1)
+    k = min(num_components, *mean_pooled.shape)
+    p = pca(mean_pooled, k)
+    norms = np.linalg.norm(z.reshape(z.shape[0], -1), axis=1)
+    pcs = []
+    for i in range(k):
+        r = pearson(p["scores"][:, i], t)
+        sign = -1.0 if r < 0.0 else 1.0
+        entry = {"pc": i + 1, "variance": float(p["explained_variance_ratio"][i]), "pooled_r": sign * r}
+        if labels is not None:
+            within = _within(sign * p["scores"][:, i], t, labels)
+            entry["within"] = within
+            entry["min_within"] = float(np.nanmin(list(within.values()))) if within else float("nan")
+        pcs.append(entry)
+    key = "min_within" if labels is not None else "pooled_r"
+    best = max(pcs, key=lambda e: -np.inf if not np.isfinite(e[key]) else e[key])
+    report = {
+        "n": int(z.shape[0]),
+        "norm_t_pearson": pearson(norms, t),
+        "pc1_t_abs_pearson": abs(pearson(p["scores"][:, 0], t)),
+        "explained_variance_ratio": [float(r) for r in p["explained_variance_ratio"]],
+        "pcs": pcs,
+        "best_pc": best,
+        "umap": False,
+        "plots": {},
+    }
+    if labels is not None:
+        within = _within(norms, t, labels)
+        report["norm_t_within"] = within
+        values = list(within.values())
+        report["norm_t_pearson_within"] = float(np.nanmean(values)) if values else float("nan")
+        report["norm_t_min_within"] = float(np.nanmin(values)) if values else float("nan")
+        pc1 = pcs[0].get("within", {})
+        report["pc1_t_pearson_within"] = float(np.nanmean(list(pc1.values()))) if pc1 else float("nan")
     embedding = None
     if use_umap and z.shape[0] >= 4:
         try:
@@ -213,20 +128,23 @@ def analyze_latents(latents, t, *, out_dir: str | os.PathLike | None = None, see
             umap = None
         if umap is not None:
             reducer = umap.UMAP(n_components=2, n_neighbors=min(15, z.shape[0] - 1), random_state=seed)
-            embedding = reducer.fit_transform(max_pooled)
+            embedding = np.asarray(reducer.fit_transform(max_pooled))
             report["umap"] = True
+            radius = np.linalg.norm(embedding - embedding.mean(axis=0), axis=1)
+            report["umap_radius_t_pearson"] = pearson(radius, t)
     if out_dir is not None:
         out = Path(out_dir)
         head = f"{title}: " if title else ""
-        path = out / f"{prefix}pca_mean_pooled.png"
-        report["plot_backend"] = scatter_png(path, scores, t, title=f"{head}PCA of mean-pooled latents",
-                                             xlabel="PC1", ylabel="PC2")
-        report["plots"]["pca"] = str(path)
+        b = best["pc"] - 1
+        other = 1 if b == 0 and k > 1 else 0
+        xy = np.stack([p["scores"][:, b], p["scores"][:, other] if k > 1 else np.zeros(len(t))], axis=1)
+        report["plots"]["pca"] = _scatter(out / f"{prefix}pca_mean_pooled.png", xy, t,
+                                          title=f"{head}PCA of mean-pooled latents", xlabel=f"PC{b + 1}",
+                                          ylabel=f"PC{other + 1}")
         if embedding is not None:
-            path = out / f"{prefix}umap_max_pooled.png"
-            scatter_png(path, embedding, t, title=f"{head}UMAP of max-pooled latents", xlabel="UMAP1",
-                        ylabel="UMAP2")
-            report["plots"]["umap"] = str(path)
+            report["plots"]["umap"] = _scatter(out / f"{prefix}umap_max_pooled.png", embedding, t,
+                                               title=f"{head}UMAP of max-pooled latents", xlabel="UMAP1",
+                                               ylabel="UMAP2")
     return report
 
 

@@ -15,6 +15,15 @@ box maps to a max extent of 1.8, see :func:`vnc_warp.training.data.normalization
   an error of pi); ``oriented=False`` uses ``arccos(|n1 . n2|)`` in [0, pi/2].
 
 Both surfaces are sampled with generators of the same seed, so identical meshes score exactly 0.
+
+Every score is reported in two frames and for two parts of the prediction:
+
+* **frames**: ``package`` (the normalized units above) and ``unit_box`` (the ground truth's stage-0 bounding
+  box scaled to a max extent of 1, as most papers do): the same samples, so CD scales by ``1 / 1.8^2``, EMD by
+  ``1 / 1.8`` and NCE not at all;
+* **parts**: ``all`` (every connected component of the prediction) and ``largest`` (its largest component by
+  area): a floating fragment far from the surface can dominate CD, and the two numbers tell it apart from an
+  error of the body itself.
 """
 
 from __future__ import annotations
@@ -31,8 +40,15 @@ from vnc_warp.mesh import Mesh, MeshError, load_mesh
 
 from .data import normalization, read_trajectory, sample_surface
 
+# ``unit_box`` over ``package`` lengths: the package frame maps the stage-0 box to a max extent of 1.8
+UNIT_BOX = 1.0 / 1.8
+FRAMES = ("package", "unit_box")
+
 __all__ = [
+    "FRAMES",
+    "UNIT_BOX",
     "chamfer_distance",
+    "largest_component",
     "compare_meshes",
     "earth_movers_distance",
     "evaluate_trajectory",
@@ -140,6 +156,32 @@ class _Surface:
             self.faces = self.faces[:, ::-1]
 
 
+def largest_component(mesh, *, name: str = "mesh") -> tuple[np.ndarray, np.ndarray, int]:
+    """The connected component (faces sharing vertices) of largest area.
+
+    Args:
+        mesh: a :class:`Mesh`, ``trimesh.Trimesh`` or ``(vertices, faces)``.
+        name: for error messages.
+
+    Returns:
+        ``(vertices (V', 3) float64, faces (F', 3) int64, number of components of the input)``.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    s = _Surface(mesh, name)
+    v, f = s.vertices, s.faces
+    rows, cols = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    _, label = connected_components(coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(len(v), len(v))),
+                                    directed=False)
+    face_label = label[f[:, 0]]
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    keep = f[face_label == np.argmax(np.bincount(face_label, weights=area))]
+    used, inverse = np.unique(keep, return_inverse=True)
+    return v[used], inverse.reshape(-1, 3).astype(np.int64), len(np.unique(face_label))
+
+
 def _sample(mesh, name: str, n: int, seed: int, normalization=None) -> tuple[np.ndarray, np.ndarray]:
     s = _Surface(mesh, name)
     if normalization is not None:
@@ -148,11 +190,13 @@ def _sample(mesh, name: str, n: int, seed: int, normalization=None) -> tuple[np.
 
 
 def _scores(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], n_emd: int, oriented: bool) -> dict:
+    """CD, EMD and NCE of two samplings in the package frame, with their ``unit_box`` values."""
     (pa, na), (pb, nb) = a, b
     cd = chamfer_distance(pa, pb)
     emd = earth_movers_distance(pa[:n_emd], pb[:n_emd])
     nce = normal_consistency_error(pa, na, pb, nb, oriented=oriented)
-    return {"cd": cd, "emd": emd, "nce": nce, "cd_x1e4": cd * 1e4, "emd_x1e2": emd * 1e2}
+    return {"cd": cd, "emd": emd, "nce": nce, "cd_x1e4": cd * 1e4, "emd_x1e2": emd * 1e2,
+            "unit_box": {"cd_x1e4": cd * 1e4 * UNIT_BOX**2, "emd_x1e2": emd * 1e2 * UNIT_BOX, "nce": nce}}
 
 
 def _check_counts(n_points: int, n_emd: int) -> None:
@@ -254,10 +298,12 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
 
     Returns:
         ``{"gt", "normalization", "conventions", "per_t": [...], "mean": {...}, "failed": n,
-        "sampling_floor": {...}}``; each ``per_t`` entry has ``t``, ``t_gt``, ``stage`` and the
-        :func:`compare_meshes` numbers, or an ``error`` message for a prediction that could not be
-        scored (excluded from ``mean``). ``sampling_floor`` scores GT stage 0 against itself sampled
-        with seed ``seed + 1``: what a perfect prediction would get.
+        "sampling_floor": {...}}``; each ``per_t`` entry has ``t``, ``t_gt``, ``stage``, ``components`` (of the
+        prediction) and the :func:`compare_meshes` numbers of the whole prediction (``cd_x1e4``, ``emd_x1e2``,
+        ``nce`` in the package frame and under ``unit_box``) and, under ``largest``, those of its largest
+        component, and ``floor``: the scored GT stage against itself sampled with seed ``seed + 1`` at the same
+        counts (what a perfect prediction would get); or an ``error`` message for a prediction that could not be
+        scored (excluded from ``mean``). ``sampling_floor`` is that floor for GT stage 0.
     """
     if pred_frame not in ("world", "normalized"):
         raise ValueError(f"evaluate_trajectory: pred_frame must be 'world' or 'normalized', got {pred_frame!r}")
@@ -268,7 +314,7 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
     stage0 = traj.load_stage(0)
     center, scale = normalization(stage0)
     gt_t = np.array([s.t for s in traj.stages])
-    per_t, gt_cache = [], {}
+    per_t, gt_cache, floors = [], {}, {}
     for t in sorted(pred_meshes_by_t, reverse=True):
         pos = int(np.argmin(np.abs(gt_t - t)))
         if max_dt is not None and abs(gt_t[pos] - t) > max_dt:
@@ -279,21 +325,31 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
             entry["error"] = "no predicted mesh"
             per_t.append(entry)
             continue
+        name = f"prediction at t={t}"
+        norm = (center, scale) if pred_frame == "world" else None
         try:
-            pred = _sample(pred_meshes_by_t[t], f"prediction at t={t}", n_points, seed,
-                           (center, scale) if pred_frame == "world" else None)
+            pred = _sample(pred_meshes_by_t[t], name, n_points, seed, norm)
+            largest = largest_component(pred_meshes_by_t[t], name=name)
         except MeshError as exc:
             entry["error"] = str(exc)
             per_t.append(entry)
             continue
         if pos not in gt_cache:
-            gt_cache[pos] = _sample(load_mesh(traj.stages[pos].path), "gt", n_points, seed, (center, scale))
+            gt_mesh = load_mesh(traj.stages[pos].path)
+            gt_cache[pos] = _sample(gt_mesh, "gt", n_points, seed, (center, scale))
+            floors[pos] = _scores(gt_cache[pos], _sample(gt_mesh, "gt", n_points, seed + 1, (center, scale)), n_emd,
+                                  oriented)
+        entry["components"] = largest[2]
+        entry["floor"] = {k: floors[pos][k] for k in _SCORE_KEYS + ("unit_box",)}
         entry.update(_scores(pred, gt_cache[pos], n_emd, oriented))
+        entry["largest"] = (_scores(_sample(largest[:2], name, n_points, seed, norm), gt_cache[pos], n_emd, oriented)
+                            if largest[2] > 1 else {k: entry[k] for k in _SCORE_KEYS + ("unit_box",)})
         per_t.append(entry)
     floor = _scores(_sample(stage0, "gt", n_points, seed, (center, scale)),
                     _sample(stage0, "gt", n_points, seed + 1, (center, scale)), n_emd, oriented)
     ok = [e for e in per_t if "error" not in e]
-    mean = {k: float(np.mean([e[k] for e in ok])) if ok else math.nan for k in ("cd_x1e4", "emd_x1e2", "nce")}
+    mean = _mean_scores(ok)
+    mean["largest"] = _mean_scores([e["largest"] for e in ok])
     return {
         "gt": str(traj.root),
         "normalization": {"center": center.tolist(), "scale": scale},
@@ -301,10 +357,25 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
             "cd": "sum of both directional means of squared nearest-neighbour distances, normalized units, x1e-4",
             "emd": "exact assignment, mean Euclidean distance of matched pairs, normalized units, x1e-2",
             "nce": f"mean nearest-neighbour normal angle, both directions, {'oriented' if oriented else 'unoriented'}, radians",
+            "frames": "package: the GT stage-0 box at max extent 1.8; unit_box: the same box at max extent 1",
+            "largest": "the prediction's largest connected component by area (the rest dropped)",
             "n_points": n_points, "n_emd": n_emd, "seed": seed, "pred_frame": pred_frame,
         },
         "per_t": per_t,
         "mean": mean,
         "failed": len(per_t) - len(ok),
-        "sampling_floor": {k: floor[k] for k in ("cd_x1e4", "emd_x1e2", "nce")},
+        "sampling_floor": {k: floor[k] for k in _SCORE_KEYS + ("unit_box",)},
     }
+
+
+_SCORE_KEYS = ("cd_x1e4", "emd_x1e2", "nce")
+
+
+def _mean_scores(entries: list[dict]) -> dict:
+    """Means of the reported scores (package frame and ``unit_box``) over scored entries; NaN when none."""
+    def mean(values):
+        return float(np.mean(values)) if values else math.nan
+
+    out = {k: mean([e[k] for e in entries]) for k in _SCORE_KEYS}
+    out["unit_box"] = {k: mean([e["unit_box"][k] for e in entries]) for k in _SCORE_KEYS}
+    return out

@@ -197,7 +197,7 @@ def timestep_embedding(t: torch.Tensor, dim: int, *, scale: float = 1000.0,
                        max_period: float = 10000.0) -> torch.Tensor:
     """Sinusoidal features of the normalised time: (B,) t in [0, 1] -> (B, dim) ``[cos, sin]``.
 
-    ``t`` is scaled by ``scale`` first so that t in [0, 1] spans the usual diffusion-timestep range.
+    ``t`` is scaled by ``scale`` first; the fastest feature turns ``scale`` radians per unit of t.
     """
     half = dim // 2
     freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
@@ -208,18 +208,22 @@ def timestep_embedding(t: torch.Tensor, dim: int, *, scale: float = 1000.0,
 class TimeEmbedding(nn.Module):
     """Normalised evolution time t (Eq. (7)) -> ``num_tokens`` tokens of ``width`` channels.
 
-    Sinusoidal features (:func:`timestep_embedding`) pass an MLP whose output is split into tokens.
+    Sinusoidal features (:func:`timestep_embedding`, fastest ``scale`` radians per unit of t) pass an MLP whose
+    output is split into tokens. A trajectory is seen at 9-33 values of t and decoded at any other, so the
+    features must change little between neighbouring stages: at ``scale = 10`` the fastest turns 0.3 rad over a
+    32-stage step, where the diffusion-style 1000 turns 31 rad and makes every unseen t a new input.
     """
 
-    def __init__(self, width: int, *, num_tokens: int = 4, freq_dim: int = 256) -> None:
+    def __init__(self, width: int, *, num_tokens: int = 4, freq_dim: int = 256, scale: float = 10.0) -> None:
         super().__init__()
         self.num_tokens = num_tokens
         self.freq_dim = freq_dim
+        self.scale = scale
         self.mlp = nn.Sequential(nn.Linear(freq_dim, width), nn.SiLU(), nn.Linear(width, num_tokens * width))
 
     def forward(self, t: torch.Tensor) -> torch.Tensor:
         """(B,) float t -> (B, num_tokens, width)."""
-        emb = self.mlp(timestep_embedding(t, self.freq_dim))
+        emb = self.mlp(timestep_embedding(t, self.freq_dim, scale=self.scale))
         return emb.view(t.shape[0], self.num_tokens, -1)
 
 
@@ -293,19 +297,35 @@ class DiagonalGaussian:
         """Reparameterised sample ``mean + std * eps`` (eps from the global torch RNG)."""
         return self.mean + self.std * torch.randn_like(self.mean)
 
-    def kl(self) -> torch.Tensor:
-        """(B,) KL(q || N(0, I)), averaged over the M x C latent entries."""
+    def kl(self, prior_logvar: torch.Tensor | float = 0.0) -> torch.Tensor:
+        """(B,) KL(q || N(0, s^2 I)) with ``log s^2 = prior_logvar``, averaged over the M x C latent entries.
+
+        Args:
+            prior_logvar: scalar or (B,) log-variance of the isotropic prior per item (0: N(0, I)).
+        """
         mean, logvar = self.mean.float(), self.logvar.float()
-        return 0.5 * (mean.square() + logvar.exp() - 1.0 - logvar).flatten(1).mean(1)
+        pl = torch.as_tensor(prior_logvar, dtype=torch.float32, device=mean.device)
+        pl = pl.reshape(-1, *([1] * (mean.ndim - 1))) if pl.ndim else pl
+        return 0.5 * ((mean.square() + logvar.exp()) * torch.exp(-pl) - 1.0 - logvar + pl).flatten(1).mean(1)
 
 
 class KLBottleneck(nn.Module):
-    """KL bottleneck: ``pre`` maps features to (mean, logvar), ``post`` maps latents back to width."""
+    """KL bottleneck: ``pre`` maps features to (mean, logvar), ``post`` maps latents back to width.
 
-    def __init__(self, width: int, *, latent_dim: int) -> None:
+    The log-variance half of ``pre`` starts at ``logvar_init`` (bias; weights zero). Training decodes a
+    sample of the posterior and inference its mean: a posterior that starts at N(mean, 1) trains the decoder
+    on codes an order of magnitude noisier than the ones it is evaluated on, and a small KL weight never
+    shrinks it; a narrow start (std e^-4 at -8) makes both the same code from the first step, and the KL
+    term then widens it only as far as the reconstruction allows.
+    """
+
+    def __init__(self, width: int, *, latent_dim: int, logvar_init: float = -8.0) -> None:
         super().__init__()
         self.pre = nn.Linear(width, 2 * latent_dim)
         self.post = nn.Linear(latent_dim, width)
+        with torch.no_grad():
+            self.pre.weight[latent_dim:].zero_()
+            self.pre.bias[latent_dim:].fill_(logvar_init)
 
     def posterior(self, h: torch.Tensor) -> DiagonalGaussian:
         """(B, M, width) features -> posterior over (B, M, latent_dim) latents."""
@@ -316,11 +336,13 @@ class KLBottleneck(nn.Module):
 class QueryDecoder(nn.Module):
     """Chunked cross-attention decoder: embedded query points attend to the latent tokens.
 
-    The output head is zero-initialised, so an untrained decoder predicts SDF 0 everywhere.
+    The output head's weights are zero-initialised and its bias is ``sdf_init``, so an untrained decoder predicts
+    that constant everywhere: 0 (the surface everywhere) or, e.g., the TSDF truncation (empty space, so that no
+    surface exists where training never put one).
     """
 
     def __init__(self, *, embedder: FourierEmbedder, width: int, heads: int, chunk_size: int = 32768,
-                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True, sdf_init: float = 0.0) -> None:
         super().__init__()
         self.embedder = embedder
         self.chunk_size = chunk_size
@@ -330,7 +352,7 @@ class QueryDecoder(nn.Module):
         self.norm = nn.LayerNorm(width)
         self.head = nn.Linear(width, 1)
         nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
+        nn.init.constant_(self.head.bias, sdf_init)
 
     def forward(self, tokens: torch.Tensor, queries: torch.Tensor, *, chunk_size: int | None = None) -> torch.Tensor:
         """tokens: (B, M, width); queries: (B, Q, 3) -> (B, Q) predicted truncated SDF."""
@@ -356,11 +378,11 @@ class LatentDecoder(nn.Module):
     """Self-attention latent transformer followed by the :class:`QueryDecoder`."""
 
     def __init__(self, *, embedder: FourierEmbedder, width: int, heads: int, depth: int, chunk_size: int = 32768,
-                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 mlp_ratio: float = 4.0, qkv_bias: bool = False, qk_norm: bool = True, sdf_init: float = 0.0) -> None:
         super().__init__()
         block = dict(heads=heads, mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.layers = nn.ModuleList(AttentionBlock(width, **block) for _ in range(depth))
-        self.queries = QueryDecoder(embedder=embedder, width=width, chunk_size=chunk_size, **block)
+        self.queries = QueryDecoder(embedder=embedder, width=width, chunk_size=chunk_size, sdf_init=sdf_init, **block)
 
     def tokens(self, h: torch.Tensor) -> torch.Tensor:
         """(B, M, width) post-projected latents -> (B, M, width) tokens for the query decoder."""
@@ -377,13 +399,15 @@ class LatentModulator(nn.Module):
     """C-VAE-II latent code modulation: z_geo cross-attends to time tokens.
 
     The latent codes (posterior mean of the frozen encoder, (B, M, C)) are projected to ``width``,
-    pass ``depth`` cross-attention blocks whose context is the time tokens, and a zero-initialised
-    projection outputs residual shifts of the posterior's mean and log-variance: at initialisation
-    the modulated posterior equals the frozen one.
+    pass ``depth`` cross-attention blocks whose context is the time tokens, and a projection outputs a
+    residual shift of the mean (zero-initialised: z_ctl starts at z_geo) and the log-variance of z_ctl
+    itself (starting at ``logvar_init``). The frozen encoder's log-variance is not inherited: z_ctl is a
+    new code whose spread the C-VAE-II objective sets, and a frozen spread near 1 would train the decoder
+    on noise while inference decodes the mean (see :class:`KLBottleneck`).
     """
 
     def __init__(self, *, latent_dim: int, width: int, heads: int, depth: int, mlp_ratio: float = 4.0,
-                 qkv_bias: bool = False, qk_norm: bool = True) -> None:
+                 qkv_bias: bool = False, qk_norm: bool = True, logvar_init: float = -8.0) -> None:
         super().__init__()
         self.proj_in = nn.Linear(latent_dim, width)
         self.blocks = nn.ModuleList(AttentionBlock(width, heads=heads, context_dim=width, mlp_ratio=mlp_ratio,
@@ -392,14 +416,16 @@ class LatentModulator(nn.Module):
         self.proj_out = nn.Linear(width, 2 * latent_dim)
         nn.init.zeros_(self.proj_out.weight)
         nn.init.zeros_(self.proj_out.bias)
+        with torch.no_grad():
+            self.proj_out.bias[latent_dim:].fill_(logvar_init)
 
     def forward(self, prior: DiagonalGaussian, time_tokens: torch.Tensor) -> DiagonalGaussian:
         """Frozen posterior and (B, T, width) time tokens -> time-modulated posterior z_ctl."""
         x = self.proj_in(prior.mean)
         for block in self.blocks:
             x = block(x, time_tokens)
-        d_mean, d_logvar = self.proj_out(self.norm(x)).chunk(2, dim=-1)
-        return DiagonalGaussian(prior.mean + d_mean, prior.logvar + d_logvar)
+        d_mean, logvar = self.proj_out(self.norm(x)).chunk(2, dim=-1)
+        return DiagonalGaussian(prior.mean + d_mean, logvar)
 
 
 def _batch_time(t: torch.Tensor | float | None, batch: int, device: torch.device) -> torch.Tensor:
@@ -461,13 +487,14 @@ class _LatentSetModel(nn.Module, abc.ABC):
                 for the eikonal term (a separate, smaller set keeps its double backward cheap).
 
         Returns:
-            ``{"tsdf": (B, Q), "kl": (B,), "z": (B, M, latent_dim)}``, plus ``"eikonal_tsdf"``: (B, E)
-            when ``eikonal_queries`` is given.
+            ``{"tsdf": (B, Q), "z": (B, M, latent_dim), "mean", "logvar"}`` (the posterior, (B, M, latent_dim)
+            each; the loss takes its KL), plus ``"eikonal_tsdf"``: (B, E) when ``eikonal_queries`` is given.
         """
         _check_inputs(surface, queries)
         z, posterior = self.encode(surface, t)
         tokens = self.latent_tokens(z)
-        out = {"tsdf": self.decoder.queries(tokens, queries), "kl": posterior.kl(), "z": z}
+        out = {"tsdf": self.decoder.queries(tokens, queries), "z": z, "mean": posterior.mean,
+               "logvar": posterior.logvar}
         if eikonal_queries is not None:
             _check_inputs(None, eikonal_queries)
             out["eikonal_tsdf"] = self.decoder.queries(tokens, eikonal_queries)
@@ -493,26 +520,30 @@ class VecSetVAE(_LatentSetModel):
         time_tokens: 0 for the plain VAE; > 0 adds the time embedding and the encoder's time
             cross-attention blocks.
         time_freq_dim: sinusoidal time feature width.
+        time_scale: radians per unit of t of the fastest time feature (see :class:`TimeEmbedding`).
+        logvar_init: initial log-variance of the posterior (see :class:`KLBottleneck`).
+        sdf_init: SDF an untrained decoder predicts everywhere (see :class:`QueryDecoder`).
     """
 
     def __init__(self, *, width: int, heads: int, num_latents: int, latent_dim: int, encoder_depth: int,
                  decoder_depth: int, num_freqs: int = 8, include_pi: bool = False, mlp_ratio: float = 4.0,
                  qkv_bias: bool = False, qk_norm: bool = True, chunk_size: int = 32768, time_tokens: int = 0,
-                 time_freq_dim: int = 256) -> None:
+                 time_freq_dim: int = 256, time_scale: float = 10.0, logvar_init: float = -8.0,
+                 sdf_init: float = 0.0) -> None:
         super().__init__()
         block = dict(mlp_ratio=mlp_ratio, qkv_bias=qkv_bias, qk_norm=qk_norm)
         self.num_latents = num_latents
         self.latent_dim = latent_dim
         self.time_conditioned = time_tokens > 0
         self.embedder = FourierEmbedder(num_freqs=num_freqs, include_pi=include_pi)
-        self.time_embed = (TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim)
+        self.time_embed = (TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim, scale=time_scale)
                            if self.time_conditioned else None)
         self.encoder = PointEncoder(embedder=self.embedder, width=width, heads=heads, num_latents=num_latents,
                                     depth=encoder_depth, condition_dim=width if self.time_conditioned else None,
                                     **block)
-        self.bottleneck = KLBottleneck(width, latent_dim=latent_dim)
+        self.bottleneck = KLBottleneck(width, latent_dim=latent_dim, logvar_init=logvar_init)
         self.decoder = LatentDecoder(embedder=self.embedder, width=width, heads=heads, depth=decoder_depth,
-                                     chunk_size=chunk_size, **block)
+                                     chunk_size=chunk_size, sdf_init=sdf_init, **block)
 
     def posterior(self, surface: torch.Tensor, t: torch.Tensor | float | None = None, *,
                   random_start: bool = False) -> DiagonalGaussian:
@@ -553,10 +584,10 @@ class CVAE1(VecSetVAE):
     Takes the :class:`VecSetVAE` arguments; ``time_tokens`` must be >= 1.
     """
 
-    def __init__(self, *, time_tokens: int = 4, time_freq_dim: int = 256, **backbone) -> None:
+    def __init__(self, *, time_tokens: int = 4, time_freq_dim: int = 256, time_scale: float = 10.0, **backbone) -> None:
         if time_tokens < 1:
             raise ValueError(f"CVAE1: time_tokens must be >= 1, got {time_tokens}")
-        super().__init__(time_tokens=time_tokens, time_freq_dim=time_freq_dim, **backbone)
+        super().__init__(time_tokens=time_tokens, time_freq_dim=time_freq_dim, time_scale=time_scale, **backbone)
 
 
 class CVAE2(_LatentSetModel):
@@ -571,14 +602,16 @@ class CVAE2(_LatentSetModel):
         base: the pre-trained plain VAE (not time-conditioned); its decoder is copied, its encoder frozen.
         time_tokens: time tokens.
         time_freq_dim: sinusoidal time feature width.
+        time_scale: radians per unit of t of the fastest time feature (see :class:`TimeEmbedding`).
         modulator_depth: cross-attention blocks of the modulator.
         heads: heads of the modulator (default: those of the base encoder).
+        logvar_init: initial log-variance of z_ctl (see :class:`LatentModulator`).
     """
 
     time_conditioned = True
 
-    def __init__(self, *, base: VecSetVAE, time_tokens: int = 4, time_freq_dim: int = 256, modulator_depth: int = 2,
-                 heads: int | None = None) -> None:
+    def __init__(self, *, base: VecSetVAE, time_tokens: int = 4, time_freq_dim: int = 256, time_scale: float = 10.0,
+                 modulator_depth: int = 2, heads: int | None = None, logvar_init: float = -8.0) -> None:
         super().__init__()
         if not isinstance(base, VecSetVAE) or base.time_conditioned:
             raise ValueError("CVAE2: base must be a plain (not time-conditioned) VecSetVAE")
@@ -591,8 +624,9 @@ class CVAE2(_LatentSetModel):
         self.frozen = nn.ModuleDict({"embedder": base.embedder, "encoder": base.encoder, "bottleneck": base.bottleneck})
         self.frozen.requires_grad_(False)
         self.frozen.eval()
-        self.time_embed = TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim)
-        self.modulator = LatentModulator(latent_dim=base.latent_dim, width=width, heads=heads, depth=modulator_depth)
+        self.time_embed = TimeEmbedding(width, num_tokens=time_tokens, freq_dim=time_freq_dim, scale=time_scale)
+        self.modulator = LatentModulator(latent_dim=base.latent_dim, width=width, heads=heads, depth=modulator_depth,
+                                         logvar_init=logvar_init)
 
     def train(self, mode: bool = True) -> "CVAE2":
         super().train(mode)
@@ -642,7 +676,8 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
     if config.kind == "vae":
         return VecSetVAE(**backbone)
     if config.kind == "cvae1":
-        return CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim, **backbone)
+        return CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim, time_scale=config.time_scale,
+                     **backbone)
     if config.kind != "cvae2":
         raise ValueError(f"unknown model kind {config.kind!r}; expected 'vae', 'cvae1' or 'cvae2'")
     base = VecSetVAE(**backbone)
@@ -657,10 +692,12 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         if pre.get("kind") != "vae":
             raise CheckpointError(f"{config.pretrained}: C-VAE-II needs a plain VAE checkpoint, this one is "
                                   f"model.kind={pre.get('kind')!r}")
-        diff = {k: (pre.get(k), v) for k, v in backbone.items() if k != "chunk_size" and pre.get(k) != v}
+        # chunk_size sets how queries are batched, logvar_init and sdf_init only the initial weights: no architecture
+        diff = {k: (pre.get(k), v) for k, v in backbone.items()
+                if k not in ("chunk_size", "logvar_init", "sdf_init") and pre.get(k) != v}
         if diff:
             detail = ", ".join(f"{k}: checkpoint {a!r} vs config {b!r}" for k, (a, b) in diff.items())
             raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")
         base.load_state_dict(ckpt["model"])
     return CVAE2(base=base, time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
-                 modulator_depth=config.modulator_depth)
+                 time_scale=config.time_scale, modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)

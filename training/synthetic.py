@@ -61,11 +61,12 @@ class EllipsoidTrajectories(Dataset):
     surface and their outward unit normals; ``queries`` (Nq, 3) float32, half uniform in [-1, 1]^3 and half within
     ``near_sigma`` of the stage's surface; ``tsdf`` (Nq,) float32 SDF of the stage clipped to
     +-``truncation``; ``near`` (Nq,) bool ``|sdf| < truncation``; ``t`` () float32; ``shape_id`` ()
-    int64; ``stage`` () int64.
+    int64; ``stage`` () int64; with ``num_on_surface > 0`` also ``on_surface`` (num_on_surface, 6): points and
+    normals on the stage's own surface.
     """
 
     def __init__(self, *, num_shapes: int = 2, num_stages: int = 4, num_surface: int = 256, num_queries: int = 256,
-                 truncation: float = 0.1, near_sigma: float = 0.03, seed: int = 0) -> None:
+                 truncation: float = 0.1, near_sigma: float = 0.03, seed: int = 0, num_on_surface: int = 0) -> None:
         if num_shapes < 1 or num_stages < 2:
             raise ValueError(f"EllipsoidTrajectories: need num_shapes >= 1 and num_stages >= 2, "
                              f"got {num_shapes} and {num_stages}")
@@ -75,6 +76,7 @@ class EllipsoidTrajectories(Dataset):
         self.num_stages = num_stages
         self.num_surface = num_surface
         self.num_queries = num_queries
+        self.num_on_surface = num_on_surface
         self.truncation = truncation
         self.near_sigma = near_sigma
         self.seed = seed
@@ -113,7 +115,7 @@ class EllipsoidTrajectories(Dataset):
         near = near + rng.normal(scale=self.near_sigma, size=near.shape)
         queries = np.concatenate([rng.uniform(-1.0, 1.0, size=(half, 3)), near])
         sdf = ellipsoid_sdf(queries, axes_t)
-        return {
+        item = {
             "surface": torch.from_numpy(np.concatenate([p0, n0], 1).astype(np.float32)),
             "queries": torch.from_numpy(queries.astype(np.float32)),
             "tsdf": torch.from_numpy(np.clip(sdf, -self.truncation, self.truncation).astype(np.float32)),
@@ -122,3 +124,7 @@ class EllipsoidTrajectories(Dataset):
             "shape_id": torch.tensor(shape_id, dtype=torch.int64),
             "stage": torch.tensor(stage, dtype=torch.int64),
         }
+        if self.num_on_surface:
+            p, n = self.surface_points(axes_t, self.num_on_surface, rng)
+            item["on_surface"] = torch.from_numpy(np.concatenate([p, n], 1).astype(np.float32))
+        return item

@@ -9,15 +9,33 @@ head, the losses and the eikonal gradient norm); GPUs without bf16 fall back to 
 Data: any map-style Dataset whose items are dicts with ``surface`` (Ns, 6), ``queries`` (Nq, 3),
 ``tsdf`` (Nq,), ``near`` (Nq,) bool and ``t`` () (the contract of
 :class:`vnc_warp.training.data.TrajectoryDataset`; ``shape_id`` and ``stage`` too for
-``data.encoder_input="stage0"``). The C-VAEs encode the detailed stage-0 surface of a trajectory and
+``data.encoder_input="stage0"``, ``on_surface`` (S, 6) for the surface and normal terms). The C-VAEs encode the detailed stage-0 surface of a trajectory and
 decode the shape at the item's time t (:class:`Stage0Input`), as ``vnc-warp generate`` does; the
 plain VAE auto-encodes every item (``data.encoder_input="item"``).
 
 A run folder holds ``config.json``, ``log.jsonl`` (one row per ``log_every`` steps: step, epoch,
-loss terms, beta_kl, lr, grad_norm, samples/s) and ``checkpoints/last.pt``. ``resume=True`` continues
-from ``checkpoints/last.pt`` exactly: model, optimiser, scheduler, per-rank RNG states and the
-data-loader position are restored, so the losses equal those of an uninterrupted run (given items
-that are a deterministic function of their index, or ``num_workers=0``).
+loss terms, beta_kl, lr, grad_norm, samples/s, and ``eval_tsdf``: L_tsdf of the step's last batch decoded as
+inference decodes, in eval mode from the posterior mean, beside ``tsdf`` decoded from posterior samples) and
+``checkpoints/last.pt``. Resuming continues from
+``checkpoints/last.pt`` exactly: model, optimiser, scheduler, per-rank RNG states, the data-loader
+position and the partly filled log window are restored, so the losses equal those of an uninterrupted
+run (given items that are a deterministic function of their index, or ``num_workers=0``).
+
+Run control (nothing lost, nothing silently wrong):
+
+* A run folder that holds a checkpoint is resumed, never overwritten: starting over takes ``restart=True``
+  (``--restart``). ``resume=True`` insists on a checkpoint; ``resume=False`` refuses a folder that has one.
+* On resume the stored settings are compared with the given ones. Settings that only change how a run goes
+  (:data:`RUNTIME_KEYS`: workers, log and checkpoint intervals, bf16) may differ; the schedule
+  (:data:`SCHEDULE_KEYS`: length, warm-ups, final lr ratio, KL curriculum) may change and is then followed
+  from the checkpoint's step on, with a warning that says so; any other difference (the learning rate, the
+  batch size, the model, ...) is refused, listed in the message, instead of being mixed into the stored run.
+* SIGINT or SIGTERM ends the run at the end of the current step with a checkpoint (every process agrees on the
+  step at the next log step under torchrun, whose agent waits 30 s before it kills), then raises
+  :class:`TrainingInterrupted`; a second signal of the same kind stops at once (the last checkpoint is intact,
+  writes being atomic).
+* A non-finite loss stops the run (:class:`TrainingError`) at the next log or checkpoint step, before anything is
+  saved, naming the first bad step and the sample files of its batch; samples are checked for NaN when read.
 """
 
 from __future__ import annotations
@@ -27,6 +45,8 @@ import json
 import math
 import os
 import random
+import signal
+import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -41,14 +61,33 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 from tqdm.auto import tqdm
 
+from vnc_warp._files import output_dir, write_bytes
+
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, unwrap
 from .config import TrainConfig
-from .losses import cvae_loss, kl_weight_at, select_eikonal_queries
+from .losses import cvae_loss, gradient_queries, kl_weight_at, tsdf_loss
 from .model import build_model
 
-__all__ = ["train", "open_dataset", "Stage0Input", "lr_factor", "resolve_device", "REQUIRED_KEYS"]
+__all__ = ["train", "open_dataset", "Stage0Input", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
+           "TrainingInterrupted", "RUNTIME_KEYS", "SCHEDULE_KEYS"]
 
 REQUIRED_KEYS = ("surface", "queries", "tsdf", "near", "t")
+OPTIONAL_KEYS = ("on_surface",)
+_TERMS = ("loss", "tsdf", "kl", "eik", "surf", "normal")
+#: Settings a resumed run may change freely: how it runs, not what it computes.
+RUNTIME_KEYS = ("name", "data.num_workers", "log_every", "ckpt_every", "bf16")
+#: Settings a resumed run may change, stated in a warning: functions of the step, followed from the resume step on.
+SCHEDULE_KEYS = ("optim.total_steps", "optim.warmup_steps", "optim.min_lr_ratio", "loss.kl_schedule",
+                 "loss.kl_weight_start", "loss.kl_warmup_start", "loss.kl_warmup_steps")
+
+
+class TrainingError(ValueError):
+    """A run that cannot start or go on as asked (a folder holding another run, refused setting changes, a
+    non-finite loss); the message says what and how to proceed."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM ended the run after a checkpoint was written; the message names the step and file."""
 
 
 def resolve_device(device: str | torch.device | None = None, *, local_rank: int | None = None) -> torch.device:
@@ -125,7 +164,9 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
         from .data import TrajectoryDataset
 
         dataset = TrajectoryDataset(root, num_surface=config.data.num_surface, num_queries=config.data.num_queries,
-                                    split=split, seed=config.seed)
+                                    near_fraction=config.data.near_fraction,
+                                    num_on_surface=config.data.num_on_surface,
+                                    fresh_fraction=config.data.fresh_fraction, split=split, seed=config.seed)
     return Stage0Input(dataset) if config.data.encoder_input == "stage0" else dataset
 
 
@@ -205,6 +246,9 @@ def _check_batch(batch: Any) -> None:
             raise ValueError(f"dataset key {key!r}: batched shape {got}, expected {shape} (None: any)")
     if batch["near"].dtype != torch.bool:
         raise ValueError(f"dataset key 'near' must be bool, got {batch['near'].dtype}")
+    if "on_surface" in batch and (batch["on_surface"].ndim != 3 or tuple(batch["on_surface"].shape[::2]) != (b, 6)):
+        raise ValueError(f"dataset key 'on_surface': batched shape {tuple(batch['on_surface'].shape)}, "
+                         f"expected ({b}, S, 6)")
 
 
 class _Log:
@@ -215,9 +259,9 @@ class _Log:
         if keep_until is not None and path.is_file():
             rows = [line for line in path.read_text().splitlines() if line.strip()]
             kept = [r for r in rows if json.loads(r).get("step", 0) <= keep_until]
-            path.write_text("".join(r + "\n" for r in kept))
+            write_bytes(path, "".join(r + "\n" for r in kept).encode())
         elif keep_until is None:
-            path.write_text("")
+            write_bytes(path, b"")
 
     def write(self, row: dict[str, Any]) -> None:
         with self.path.open("a") as f:
@@ -238,17 +282,20 @@ def _optimizer(model: torch.nn.Module, config: TrainConfig) -> tuple[torch.optim
 
 
 def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: str | os.PathLike,
-          device: str | torch.device | None = None, resume: bool = False, stop_at: int | None = None,
-          progress: bool = True) -> dict[str, Any]:
-    """Train the model ``config.model`` describes.
+          device: str | torch.device | None = None, resume: bool | None = None, restart: bool = False,
+          stop_at: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Train the model ``config.model`` describes (see the module docstring for run control).
 
     Args:
         config: the run configuration (``optim.total_steps`` sets the schedule and the default end).
         data: a dataset folder (read with ``TrajectoryDataset``) or any Dataset with the contract's keys.
-        out_dir: run folder (created).
+        out_dir: run folder (created; checked writable before anything is computed).
         device: None (CUDA when present), ``"cpu"``, ``"cuda"``, ``"cuda:1"``...
-        resume: continue from ``out_dir/checkpoints/last.pt``.
-        stop_at: stop after this step (the schedule still follows ``total_steps``); default ``total_steps``.
+        resume: None: continue from ``out_dir/checkpoints/last.pt`` when it exists, else start; True: continue,
+            a checkpoint must exist; False: start, refusing a folder that holds a checkpoint.
+        restart: discard the folder's checkpoint and log and start from step 0 (not with ``resume=True``).
+        stop_at: stop after this step (>= 1; the schedule still follows ``total_steps``); default
+            ``total_steps``. A run already at or past it trains nothing.
         progress: show a tqdm bar on rank 0.
 
     Returns:
@@ -257,46 +304,197 @@ def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: st
         (mean over the run, all ranks).
 
     Raises:
-        FileNotFoundError: missing data folder, or ``resume`` without a checkpoint.
+        FileNotFoundError: missing data folder, or ``resume=True`` without a checkpoint.
+        OSError: ``out_dir`` cannot be created or written to.
         CheckpointError: unreadable checkpoint.
-        ValueError: invalid config, dataset items that break the contract, a dataset smaller than one
-            global batch, or a checkpoint whose model config differs from ``config.model``.
+        TrainingError: ``resume=False`` on a folder with a checkpoint, settings changed on resume beyond the
+            schedule (listed), or a non-finite loss (step and sample files named).
+        TrainingInterrupted: SIGINT or SIGTERM, after the checkpoint was written.
+        ValueError: invalid config or ``stop_at``, dataset items that break the contract, a dataset smaller than
+            one global batch, or a checkpoint whose model config differs from ``config.model``.
     """
     config.validate()
+    if stop_at is not None and (isinstance(stop_at, bool) or int(stop_at) != stop_at or stop_at < 1):
+        raise ValueError(f"stop_at must be a step >= 1, got {stop_at!r}")
+    if restart and resume:
+        raise ValueError("resume and restart exclude each other: resume continues the run, restart discards it")
     ctx = _setup_distributed(device)
     try:
-        return _run(config, data, Path(out_dir), ctx, resume=resume, stop_at=stop_at, progress=progress)
+        return _run(config, data, Path(out_dir), ctx, resume=resume, restart=restart, stop_at=stop_at,
+                    progress=progress)
     finally:
         if ctx.owns_group:
             dist.destroy_process_group()
 
 
-def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool, stop_at: int | None,
-         progress: bool) -> dict[str, Any]:
-    ckpt_path = out / "checkpoints" / "last.pt"
-    if resume and not ckpt_path.is_file():
+def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _setting_changes(stored: dict, new: dict) -> tuple[list[str], list[str]]:
+    """The settings that differ between a checkpoint's config and the given one, as ``"key: old -> new"``:
+    (refused, schedule)."""
+    a, b = _flat(stored), _flat(new)
+    refused, schedule = [], []
+    for key in sorted(set(a) | set(b)):
+        if a.get(key) == b.get(key) or key in RUNTIME_KEYS:
+            continue
+        (schedule if key in SCHEDULE_KEYS else refused).append(f"{key}: {a.get(key)!r} -> {b.get(key)!r}")
+    return refused, schedule
+
+
+class _Signals:
+    """SIGINT / SIGTERM turned into a request to stop at the end of the current step (main thread only); a second
+    signal of the same kind raises KeyboardInterrupt at once. A signal the process was told to ignore (a job started
+    in the background by a shell) stays ignored."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.received == signum:
+            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}: stopped without a new checkpoint")
+        self.received = signum
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def _quiet_worker(worker_id: int) -> None:
+    """DataLoader workers leave SIGINT and SIGTERM to the main process, which stops the run cleanly (a Ctrl-C
+    reaches every process of the terminal's group)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def _item_files(dataset: Dataset, shape_ids, stages) -> list[str]:
+    """What a batch was made of, for messages: the sample files of a TrajectoryDataset, else shape ids and stages."""
+    base = getattr(dataset, "base", dataset)
+    name = getattr(base, "item_file", None)
+    pairs = list(zip(shape_ids.tolist(), stages.tolist())) if shape_ids is not None and stages is not None else []
+    if not pairs:
+        return ["(items without shape_id/stage)"]
+    return [name(int(s), int(st)) if name is not None else f"shape {s} stage {st}" for s, st in pairs]
+
+
+class _Window:
+    """Loss sums of the steps since the last log row, and what is needed to name a non-finite step's batch."""
+
+    def __init__(self, device: torch.device, state: dict | None) -> None:
+        self.sums = torch.zeros(len(_TERMS) + 1, dtype=torch.float64, device=device)  # _TERMS, grad_norm
+        self.steps = 0
+        if state and len(state["sums"]) == self.sums.numel():
+            self.sums += torch.tensor(state["sums"], dtype=torch.float64, device=device)
+            self.steps = int(state["steps"])
+        self.losses: list[torch.Tensor] = []
+        self.batches: list[tuple[int, Any, Any]] = []
+
+    def add(self, step: int, terms: dict, grad_norm: torch.Tensor, batch: dict) -> None:
+        loss = terms["loss"].detach()
+        self.sums += torch.stack([*(terms[k].detach() for k in _TERMS), grad_norm.detach()]).double()
+        self.steps += 1
+        self.losses.append(loss.reshape(1))
+        self.batches.append((step, batch.get("shape_id"), batch.get("stage")))
+
+    def first_nonfinite(self) -> tuple[int, float, Any, Any] | None:
+        """(step, loss, shape ids, stages) of this process's first non-finite loss since the last check."""
+        if not self.losses:
+            return None
+        values = torch.cat(self.losses)
+        batches = self.batches
+        self.losses, self.batches = [], []
+        bad = torch.nonzero(~torch.isfinite(values)).flatten()
+        if bad.numel() == 0:
+            return None
+        k = int(bad[0])
+        step, sids, stages = batches[k]
+        return step, float(values[k]), sids, stages
+
+    def state(self) -> dict:
+        return {"sums": self.sums.tolist(), "steps": self.steps}
+
+    def reset(self) -> None:
+        self.sums.zero_()
+        self.steps = 0
+
+
+def _prepare_folder(out: Path, ckpt_path: Path, ctx: _Dist, resume: bool | None, restart: bool) -> bool:
+    """Check the run folder before anything is computed and decide whether to resume (see the module docstring)."""
+    if ctx.is_main:
+        output_dir(out, what="run folder")
+    has = ckpt_path.is_file()
+    if resume is True and not has:
         raise FileNotFoundError(f"resume: no checkpoint at {ckpt_path}")
+    if has and resume is False and not restart:
+        raise TrainingError(f"{out} holds a run (checkpoint {ckpt_path}); resume it, start over with --restart "
+                            "(restart=True), or train into a new folder")
+    if restart and ctx.is_main:
+        for stale in (ckpt_path, ckpt_path.with_name(ckpt_path.name + ".tmp"), out / "log.jsonl"):
+            stale.unlink(missing_ok=True)
+    ctx.barrier()
+    return has and not restart
+
+
+def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool | None, restart: bool,
+         stop_at: int | None, progress: bool) -> dict[str, Any]:
+    ckpt_path = out / "checkpoints" / "last.pt"
+    resuming = _prepare_folder(out, ckpt_path, ctx, resume, restart)
+    state = None
+    if resuming:
+        state = load_checkpoint(ckpt_path)
+        if state["config"]["model"] != config.to_dict()["model"]:
+            raise ValueError(f"resume: model config of {ckpt_path} differs from the given config")
+        refused, changed = _setting_changes(state["config"], config.to_dict())
+        if refused:
+            raise TrainingError(f"resume: {ckpt_path} (step {state['step']}) was trained with other settings: "
+                                f"{'; '.join(refused)}. Resuming would mix them into the stored run: give the "
+                                "stored settings, start over with --restart, or train into a new folder")
+        if changed and ctx.is_main:
+            warnings.warn(f"resume at step {state['step']}: schedule settings changed ({'; '.join(changed)}); "
+                          f"the schedules follow the new settings from step {state['step']} on", stacklevel=3)
+    end = config.optim.total_steps if stop_at is None else stop_at
+    if state is not None and state["step"] >= end:
+        if ctx.is_main:
+            warnings.warn(f"{out} is at step {state['step']}, at or past the requested end {end}: nothing to train",
+                          stacklevel=3)
+        return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device),
+                "start_step": state["step"], "step": state["step"], "checkpoint": str(ckpt_path), "last": {},
+                "samples_per_s": 0.0}
     dataset = open_dataset(data, config)
     bs = config.data.batch_size
     if len(dataset) < bs * ctx.world_size:
         raise ValueError(f"dataset has {len(dataset)} items, fewer than one global batch "
                          f"(batch_size {bs} x {ctx.world_size} processes)")
     if ctx.is_main:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+        write_bytes(out / "config.json", (json.dumps(config.to_dict(), indent=2) + "\n").encode())
 
     _seed_all(config.seed)  # identical initial weights on every rank
     model = build_model(config.model).to(ctx.device)
     opt, sched, params = _optimizer(model, config)
     step = epoch = batch_in_epoch = 0
-    if resume:
-        state = load_checkpoint(ckpt_path)
-        if state["config"]["model"] != config.to_dict()["model"]:
-            raise ValueError(f"resume: model config of {ckpt_path} differs from the given config")
+    if state is not None:
         unwrap(model).load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         step, epoch, batch_in_epoch = state["step"], state["epoch"], state["batch_in_epoch"]
+        if changed:
+            # the stored learning rate is the old schedule's; the new one takes over at this step
+            sched = torch.optim.lr_scheduler.LambdaLR(opt, sched.lr_lambdas, last_epoch=step - 1)
         rngs = state["rng"]
         if rngs is not None and len(rngs) == ctx.world_size:
             set_rng_state(rngs[ctx.rank])
@@ -323,78 +521,132 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool,
         loader_gen.manual_seed(config.seed * 1_000_003 + ep)  # worker seeds depend on the epoch only
         return DataLoader(dataset, batch_size=bs, sampler=_SkipSampler(sampler, skip_batches * bs),
                           num_workers=config.data.num_workers, drop_last=True, generator=loader_gen,
-                          pin_memory=ctx.device.type == "cuda")
+                          pin_memory=ctx.device.type == "cuda", worker_init_fn=_quiet_worker)
 
-    end = config.optim.total_steps if stop_at is None else stop_at
     amp = config.bf16 and ctx.device.type == "cuda"
     if amp and not torch.cuda.is_bf16_supported():
         warnings.warn(f"{ctx.device} does not support bf16; training in float32", stacklevel=2)
         amp = False
-    eik = config.loss.eikonal_weight > 0
-    log = _Log(out / "log.jsonl", keep_until=step if resume else None) if ctx.is_main else None
+    log = _Log(out / "log.jsonl", keep_until=step if resuming else None) if ctx.is_main else None
     bar = tqdm(total=end, initial=step, disable=not (progress and ctx.is_main), desc=f"train {config.name}",
                dynamic_ncols=True)
-    window = torch.zeros(5, dtype=torch.float64, device=ctx.device)  # loss, tsdf, kl, eik, grad_norm sums
-    window_steps, window_t0, run_t0 = 0, time.perf_counter(), time.perf_counter()
+    windows = state.get("window") if state is not None else None
+    window = _Window(ctx.device, windows[ctx.rank] if windows and len(windows) == ctx.world_size else None)
+    window_t0, run_t0 = time.perf_counter(), time.perf_counter()
     last: dict[str, float] = {}
     checked = False
-    while step < end:
-        for batch in loader_for(epoch, batch_in_epoch):
-            if not checked:
-                _check_batch(batch)
-                checked = True
-            b = {k: batch[k].to(ctx.device, non_blocking=True) for k in REQUIRED_KEYS}
-            eik_q, eik_near = (select_eikonal_queries(b["queries"], b["near"], config.loss.eikonal_queries)
-                               if eik else (None, None))
-            with torch.autocast(device_type=ctx.device.type, dtype=torch.bfloat16, enabled=amp):
-                out = model(b["surface"], b["queries"], b["t"], eikonal_queries=eik_q)
-            terms = cvae_loss(out, b, config.loss, step=step, eikonal_queries=eik_q, eikonal_near=eik_near)
-            opt.zero_grad(set_to_none=True)
-            terms["loss"].backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
-            lr = sched.get_last_lr()[0]
-            opt.step()
-            sched.step()
-            step += 1
-            batch_in_epoch += 1
-            window += torch.stack([terms["loss"].detach(), terms["tsdf"].detach(), terms["kl"].detach(),
-                                   terms["eik"].detach(), grad_norm.detach()]).double()
-            window_steps += 1
-            bar.update(1)
-            if step % config.log_every == 0 or step == end:
-                if ctx.world_size > 1:
-                    dist.all_reduce(window)
-                means = (window / (window_steps * ctx.world_size)).tolist()
-                elapsed = time.perf_counter() - window_t0
-                last = dict(zip(("loss", "tsdf", "kl", "eik", "grad_norm"), means))
-                row = {"step": step, "epoch": epoch, **last, "beta_kl": kl_weight_at(step - 1, config.loss), "lr": lr,
-                       "samples_per_s": window_steps * bs * ctx.world_size / max(elapsed, 1e-9)}
-                if log is not None:
-                    log.write(row)
-                    bar.set_postfix(loss=f"{last['loss']:.4g}")
-                window.zero_()
-                window_steps, window_t0 = 0, time.perf_counter()
-            if step % config.ckpt_every == 0 or step == end:
-                _save(ckpt_path, model, config, step, opt, sched, epoch, batch_in_epoch, ctx)
-            if step >= end:
-                break
-        else:
-            epoch += 1
-            batch_in_epoch = 0
-    bar.close()
+    saved_at = step
+    stop = False
+
+    def save() -> None:
+        nonlocal saved_at
+        _save(ckpt_path, model, config, step, opt, sched, epoch, batch_in_epoch, ctx, window.state())
+        saved_at = step
+
+    def check(signals: _Signals) -> bool:
+        """Every process's verdict on non-finite losses (raised) and stop requests since the last check."""
+        bad = window.first_nonfinite()
+        flags = torch.tensor([bad is not None, signals.received is not None], dtype=torch.float64,
+                             device=ctx.device)
+        if ctx.world_size > 1:
+            dist.all_reduce(flags)
+        if flags[0] > 0:
+            where = "on another process" if bad is None else (
+                f"{bad[1]} at step {bad[0]}, batch of {', '.join(_item_files(dataset, bad[2], bad[3]))}")
+            kept = f"the last checkpoint ({ckpt_path}, step {saved_at}) is intact" if ckpt_path.is_file() else \
+                "no checkpoint was written"
+            raise TrainingError(f"non-finite loss {where}; stopped without saving: {kept}. Check those samples "
+                                "(`vnc-warp dataset --verify`) or lower optim.lr")
+        return bool(flags[1] > 0)
+
+    with _Signals() as signals:
+        try:
+            while step < end and not stop:
+                for batch in loader_for(epoch, batch_in_epoch):
+                    if not checked:
+                        _check_batch(batch)
+                        checked = True
+                    b = {k: batch[k].to(ctx.device, non_blocking=True)
+                         for k in (*REQUIRED_KEYS, *OPTIONAL_KEYS) if k in batch}
+                    grad_q = gradient_queries(b, config.loss)
+                    with torch.autocast(device_type=ctx.device.type, dtype=torch.bfloat16, enabled=amp):
+                        out_ = model(b["surface"], b["queries"], b["t"],
+                                     eikonal_queries=None if grad_q is None else grad_q.points)
+                    terms = cvae_loss(out_, b, config.loss, step=step, gradient=grad_q)
+                    opt.zero_grad(set_to_none=True)
+                    terms["loss"].backward()
+                    grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
+                    lr = sched.get_last_lr()[0]
+                    opt.step()
+                    sched.step()
+                    step += 1
+                    batch_in_epoch += 1
+                    window.add(step, terms, grad_norm, batch)
+                    bar.update(1)
+                    at_log = step % config.log_every == 0 or step == end
+                    at_ckpt = step % config.ckpt_every == 0 or step == end
+                    if at_log or at_ckpt or (ctx.world_size == 1 and signals.received is not None):
+                        stop = check(signals)
+                    if at_log:
+                        sums = window.sums
+                        eval_tsdf = _eval_tsdf(unwrap(model), b, config, amp)
+                        if ctx.world_size > 1:
+                            dist.all_reduce(sums)
+                            dist.all_reduce(eval_tsdf)
+                        means = (sums / (window.steps * ctx.world_size)).tolist()
+                        elapsed = time.perf_counter() - window_t0
+                        last = dict(zip((*_TERMS, "grad_norm"), means))
+                        last["eval_tsdf"] = float(eval_tsdf) / ctx.world_size
+                        row = {"step": step, "epoch": epoch, **last, "beta_kl": kl_weight_at(step - 1, config.loss),
+                               "lr": lr, "samples_per_s": window.steps * bs * ctx.world_size / max(elapsed, 1e-9)}
+                        if log is not None:
+                            log.write(row)
+                            bar.set_postfix(loss=f"{last['loss']:.4g}")
+                        window.reset()
+                        window_t0 = time.perf_counter()
+                    if at_ckpt or stop:
+                        save()
+                    if step >= end or stop:
+                        break
+                else:
+                    epoch += 1
+                    batch_in_epoch = 0
+        finally:
+            bar.close()
+    if stop:
+        name = signal.Signals(signals.received).name if signals.received else "a signal on another process"
+        raise TrainingInterrupted(f"stopped by {name} at step {step}; checkpoint {ckpt_path} written; run the same "
+                                  "command again to resume")
     total_time = time.perf_counter() - run_t0
     return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device), "start_step": start_step,
             "step": step, "checkpoint": str(ckpt_path), "last": last,
             "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9)}
 
 
+@torch.no_grad()
+def _eval_tsdf(model: torch.nn.Module, b: dict[str, torch.Tensor], config: TrainConfig, amp: bool) -> torch.Tensor:
+    """L_tsdf of one batch decoded as inference decodes: eval mode, the posterior mean, the first FPS point fixed.
+
+    Training decodes posterior samples; a decoder that only works on those shows here as a gap to ``tsdf``.
+    """
+    model.eval()
+    try:
+        with torch.autocast(device_type=b["queries"].device.type, dtype=torch.bfloat16, enabled=amp):
+            out = model(b["surface"], b["queries"], b["t"])
+        return tsdf_loss(out["tsdf"], b["tsdf"], kind=config.loss.tsdf, near=b["near"],
+                         near_weight=config.loss.near_weight).double()
+    finally:
+        model.train()
+
+
 def _save(path: Path, model: torch.nn.Module, config: TrainConfig, step: int, opt: torch.optim.Optimizer,
-          sched: Any, epoch: int, batch_in_epoch: int, ctx: _Dist) -> None:
-    states = [rng_state()]
+          sched: Any, epoch: int, batch_in_epoch: int, ctx: _Dist, window: dict) -> None:
+    states = [(rng_state(), window)]
     if ctx.world_size > 1:
         states = [None] * ctx.world_size
-        dist.all_gather_object(states, rng_state())
+        dist.all_gather_object(states, (rng_state(), window))
     if ctx.is_main:
         save_checkpoint(path, model=model, config=config, step=step, optimizer=opt, scheduler=sched, epoch=epoch,
-                        batch_in_epoch=batch_in_epoch, world_size=ctx.world_size, rng=states)
+                        batch_in_epoch=batch_in_epoch, world_size=ctx.world_size, rng=[r for r, _ in states],
+                        window=[w for _, w in states])
     ctx.barrier()

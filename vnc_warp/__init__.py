@@ -1,6 +1,14 @@
 """vnc-warp: the VNC operator, VNC-Flow and the C-VAE of "VNC: A Scale-Space Foundation for Learnable
 3D Surface Evolution", on NVIDIA Warp kernels with PyTorch interop."""
 
+import logging
+
+__version__ = "0.1.0"
+
+# status messages of the library go to the "vnc_warp" logger; the application decides where (the CLI: stderr)
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+
 def _source_checkout() -> None:
     """Map ``kernels/`` and ``training/`` of a source checkout to ``vnc_warp.kernels`` / ``vnc_warp.training``.
 
@@ -27,10 +35,8 @@ def _source_checkout() -> None:
 
 _source_checkout()
 
-from .mesh import EdgeTopology, Mesh, MeshError, from_arrays, load_mesh
-
-__version__ = "0.1.0"
-from .operators import edge_fields, integrated_mean_curvature, vnc_hard, vnc_soft
+from .mesh import EdgeTopology, Mesh, MeshError, MeshInput, from_arrays, load_mesh, mesh_input
+from .operators import DegenerateResultWarning, edge_fields, integrated_mean_curvature, vnc_hard, vnc_soft
 from .scale import ScaleCurve, adaptive_scale, default_scales, scale_curve, vnc_auc
 from .shapes import icosphere, random_shape, shape_family
 from .render import Camera, colorbar, colormap, montage, render_mesh, save_png
@@ -42,3 +48,4 @@ from ._replay import set_graph_replay
 from . import figures
 # `vw.flow` is the function (the issue's contract); the module stays importable as `vnc_warp.flow`.
 from .flow import FlowError, FlowParams, Trajectory, flow, flow_steps, sphericity, total_complexity  # noqa: E402
+from .trajectory import TrajectoryError  # noqa: E402

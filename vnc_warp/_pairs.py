@@ -164,15 +164,25 @@ class Bounds:
 
 
 def bounds(x: wp.array, radius: wp.array, length: wp.array | None = None) -> Bounds:
-    """Bounding box of ``x``, statistics of ``radius`` and ``length``: one launch, one small copy to the host."""
+    """Bounding box of ``x``, statistics of ``radius`` and ``length``: one launch, one small copy to the host.
+
+    Raises:
+        ValueError: a point of ``x`` has a NaN or infinite coordinate, or a radius is not positive and finite
+            (counted in the same pass: values given on the device are checked at no extra cost).
+    """
     device = x.device
     if length is None:
         length = wp.empty(0, dtype=wp.float32, device=device)
-    stats = wp.array(np.array([np.inf] * 3 + [-np.inf] * 4 + [0.0, 0.0, 0.0], dtype=np.float32), device=device)
+    stats = wp.array(np.array([np.inf] * 3 + [-np.inf] * 4 + [0.0] * 5, dtype=np.float32), device=device)
     stride = int(min(max(x.shape[0], radius.shape[0], length.shape[0]), 4096))
     wp.launch(_k.point_stats, dim=stride, inputs=[x, radius, length, stride], outputs=[stats], device=device,
               record_tape=False)
     s = stats.numpy().astype(np.float64)
+    if s[10] > 0:
+        raise ValueError(f"positions: {int(s[10])} of {x.shape[0]} point(s) have a NaN or infinite coordinate")
+    if s[11] > 0:
+        raise ValueError(f"scales (tau or radius): {int(s[11])} of {radius.shape[0]} value(s) are not positive and "
+                         "finite")
     return Bounds(s[0:3], s[3:6], float(s[6]), float(s[7]) / max(radius.shape[0], 1), float(s[8]),
                   float(s[9]) / max(length.shape[0], 1))
 

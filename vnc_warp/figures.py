@@ -1,7 +1,9 @@
 """The paper's figures from data: one function per figure, each returning an image and writing a PNG.
 
 Every function takes what its figure shows (meshes, per-vertex fields, curves, a trajectory, latents),
-returns the picture as an ``(H, W, 3) uint8`` array and, given ``path``, also writes it as PNG.
+returns the picture as an ``(H, W, 3) uint8`` array and, given ``path``, also writes it as PNG. The plots (Figs. 6,
+8a, 11) are drawn with matplotlib in the style of :mod:`vnc_warp.plot` (STIX text and mathematics) and written as a
+PDF beside the PNG as well (``vector="svg"`` for SVG, None for none).
 
 ==========================  ===========  ==========================================================
 function                    figure       data
@@ -18,8 +20,7 @@ function                    figure       data
 
 Meshes are rendered headless by :func:`vnc_warp.render.render_mesh`; one camera per figure comes from
 :func:`auto_camera`, fitted to the bounds of all the figure's meshes, so any mesh at any scale is framed
-without options (pass ``camera`` to choose the view). Texts are ASCII: Pillow's bundled font has no
-Greek letters.
+without options (pass ``camera`` to choose the view).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from .mesh import Mesh
-from .plot import SERIES_COLORS, line_plot, scatter_plot
+from . import plot
 from .render import Camera, _as_rgb8, _font, _host, _text_size, colorbar, render_mesh, save_png
 
 __all__ = [
@@ -264,49 +265,6 @@ def _colorbar_row(cmap: str, limits: tuple[float, float], label: str, grid_width
     return _vstack([_text_image([label], width, 17), bar])
 
 
-def _panel(series: Sequence[tuple[Any, Any, Any, tuple[int, int, int], int]], *, size: tuple[int, int], title: str,
-           xlabel: str, ylabel: str) -> np.ndarray:
-    """One set of axes without a legend (figures share one below): ``(x, y, spread or None, rgb, width)`` per line."""
-    from .plot import _Axes, _limits
-
-    xs = [np.asarray(x, np.float64) for x, *_ in series]
-    ys = []
-    for _, y, spread, _, _ in series:
-        y = np.asarray(y, np.float64)
-        ys += [y] if spread is None else [y - spread, y + spread]
-    ax = _Axes(size, _limits(xs, 0.02), _limits(ys, 0.06), title=title, xlabel=xlabel, ylabel=ylabel)
-    ax.grid()
-    for x, y, spread, rgb, _ in series:
-        if spread is not None:
-            x, y, spread = (np.asarray(a, np.float64) for a in (x, y, spread))
-            upper = list(zip(ax.px(x).tolist(), ax.py(y + spread).tolist()))
-            lower = list(zip(ax.px(x).tolist(), ax.py(y - spread).tolist()))
-            ax.fill_alpha(upper + lower[::-1], rgb, alpha=0.18)
-    for x, y, _, rgb, width in series:
-        ax.polyline(np.asarray(x, np.float64), np.asarray(y, np.float64), rgb, width=width)
-    ax.frame()
-    return ax.rgb()
-
-
-def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int]]], width: int, size: int = 18) -> np.ndarray:
-    """Line samples and names in one centred row."""
-    from PIL import Image, ImageDraw
-
-    font = _font(size)
-    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    sample, gap = 3 * size, 2 * size
-    widths = [sample + size // 2 + _text_size(probe, name, font)[0] for name, _ in entries]
-    total = sum(widths) + gap * (len(entries) - 1)
-    img = Image.new("RGB", (max(width, total + 16), int(size * 2.2)), _WHITE)
-    draw = ImageDraw.Draw(img)
-    x, yc = (img.width - total) // 2, img.height // 2
-    for (name, rgb), w in zip(entries, widths):
-        draw.line([(x, yc), (x + sample, yc)], fill=rgb, width=4)
-        draw.text((x + sample + size // 2, yc), name, fill=_TEXT_RGB, font=font, anchor="lm")
-        x += w + gap
-    return np.asarray(img)
-
-
 # ---------------------------------------------------------------------------------------------- figures
 
 
@@ -357,9 +315,9 @@ def curvature_scales(
     cam = camera or auto_camera(mesh)
     edge = mesh.mean_edge_length
     tiles = [_frame(mesh, cam, frame_size, device, scalars=h[i], cmap=cmap, vmin=lim[0], vmax=lim[1]) for i in idx]
-    labels = [f"tau = {t[i]:.3g}  ({t[i] / edge:.1f} x edge)" for i in idx]
+    labels = [f"τ = {t[i]:.3g}  ({t[i] / edge:.1f} × mean edge)" for i in idx]
     grid = _grid([tiles], frame=frame_size, labels=[labels])
-    bar = _colorbar_row(cmap, lim, "VNC H (dimensionless), one colour scale for all frames", grid.shape[1])
+    bar = _colorbar_row(cmap, lim, "VNC Ĥ (dimensionless), one colour scale for all frames", grid.shape[1])
     img = _titled(_vstack([grid, bar], 6), title or f"Fig. 5  VNC across scales: {mesh.name}",
                   "small scales: fine detail; large scales: coarse structure\n"
                   "red: more convex than the mean, blue: less")
@@ -374,23 +332,26 @@ def scale_stability(
     *,
     edge_length: float | None = None,
     title: str | None = None,
-    panel_size: tuple[int, int] = (600, 440),
+    size: tuple[int, int] = (1400, 520),
+    vector: str | None = "pdf",
 ) -> np.ndarray:
     """Fig. 6: vertex mean and variance of VNC and of the un-normalized baseline across scales.
 
-    Three panels: (a) the mean of each VNC operator, with a +-1 standard deviation band over vertices for
-    the first (dimensionless: the mean stays put while the band narrows); (b) and (c) the mean and the
-    variance of every operator relative to their values at the smallest scale, as ``log10`` ratios, so the
-    dimensionless VNC and the baseline of Eq. (1) (length x angle, growing with the ball) share one axis.
+    Three panels over a logarithmic scale axis: (a) the mean of each VNC operator, with a +-1 standard deviation
+    band over vertices for the first (dimensionless: the mean stays put while the band narrows); (b) and (c) the
+    mean and the variance of every operator relative to their values at the smallest scale, on logarithmic axes,
+    so the dimensionless VNC and the baseline of Eq. (1) (length x angle, growing with the ball) share one axis.
+    Earlier series are drawn wider, so curves that coincide (VNC-soft and -hard at r = 6 sigma) stay visible.
 
     Args:
         taus: (S,) scales (mesh units).
         vnc: name -> (S, V) per-vertex values of a normalized operator (Eq. 2 or 3) at each scale.
         baseline: name -> (S, V) per-vertex values of an un-normalized operator (Eq. 1), or None.
-        path: also write the PNG there.
+        path: also write the PNG there, and the ``vector`` copy beside it.
         edge_length: when given, scales are shown in mean edge lengths.
-        title: figure title.
-        panel_size: ``(width, height)`` of each panel in pixels.
+        title: figure title ("" for none).
+        size: ``(width, height)`` of the PNG in pixels (:data:`vnc_warp.plot.DPI` per inch).
+        vector: "pdf", "svg" or None.
 
     Returns:
         (H, W, 3) uint8.
@@ -409,36 +370,40 @@ def scale_stability(
                 raise ValueError(f"scale_stability: {name!r} must be (S, V) with S = {t.size}, got {v.shape}")
             stats[name] = (group, v.mean(axis=1), v.var(axis=1))
     x = t / edge_length if edge_length else t
-    xlabel = "scale tau / mean edge length" if edge_length else "scale tau (mesh units)"
+    xlabel = r"scale $\tau$ / mean edge length" if edge_length else r"scale $\tau$ (mesh units)"
     names = list(stats)
-    colors = {n: SERIES_COLORS[k % len(SERIES_COLORS)] for k, n in enumerate(names)}
-    # earlier series are drawn wider so that curves that coincide (VNC-soft and -hard at r = 6 sigma) stay visible
-    widths = {n: 2 + 2 * (len(names) - 1 - k) for k, n in enumerate(names)}
+    widths = {n: 1.3 + 1.2 * (len(names) - 1 - k) for k, n in enumerate(names)}
 
-    def log_ratio(a: np.ndarray) -> np.ndarray:
+    def ratio(a: np.ndarray) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             r = a / a[0]
-        return np.where(r > 0, np.log10(np.where(r > 0, r, 1.0)), np.nan)
+        return np.where(r > 0, r, np.nan)
 
     vnc_names = [n for n, (g, _, _) in stats.items() if g == "vnc"]
-    # one band (the first operator's): overlapping translucent bands would mix into a colour of no series
-    panel_a = _panel([(x, stats[n][1], np.sqrt(stats[n][2]) if k == 0 else None, colors[n], widths[n])
-                      for k, n in enumerate(vnc_names)],
-                     size=panel_size, title=f"(a) VNC mean; band: +- 1 std of {vnc_names[0].split(' (')[0]}",
-                     xlabel=xlabel, ylabel="VNC H (dimensionless)")
-    panel_b = _panel([(x, log_ratio(m), None, colors[n], widths[n]) for n, (_, m, _) in stats.items()],
-                     size=panel_size, title="(b) mean, relative to the smallest scale", xlabel=xlabel,
-                     ylabel="log10 (mean / mean at smallest tau)")
-    panel_c = _panel([(x, log_ratio(var), None, colors[n], widths[n]) for n, (_, _, var) in stats.items()],
-                     size=panel_size, title="(c) variance, relative to the smallest scale", xlabel=xlabel,
-                     ylabel="log10 (var / var at smallest tau)")
-    body = _hstack([panel_a, panel_b, panel_c], 12)
-    body = _vstack([body, _legend_strip([(n, colors[n]) for n in names], body.shape[1])], 4)
-    img = _titled(body, title or "Fig. 6  Scale stability of VNC vs. the Eq. (1) baseline",
-                  "VNC is dimensionless: its mean stays flat while its variance falls; "
-                  "the un-normalized baseline grows with the scale\n"
-                  "earlier series are drawn wider, so curves that coincide stay visible")
-    return _finish(img, path)
+    with plot.style():
+        fig, (pa, pb, pc) = plot.figure(size, ncols=3)
+        for k, n in enumerate(names):
+            group, mean, var = stats[n]
+            color = plot.rgb(k)
+            if group == "vnc":
+                pa.plot(x, mean, color=color, lw=widths[n], label=n)
+                if n == vnc_names[0]:
+                    sd = np.sqrt(var)
+                    pa.fill_between(x, mean - sd, mean + sd, color=color, alpha=0.18, lw=0)
+            pb.plot(x, ratio(mean), color=color, lw=widths[n], label=n)
+            pc.plot(x, ratio(var), color=color, lw=widths[n], label=n)
+        pa.set(title=r"(a) vertex mean of $\hat{H}$ $\pm$ 1 std", ylabel=r"$\hat{H}$ (dimensionless)")
+        pb.set(title=r"(b) mean, relative to $\tau_{\min}$", ylabel=r"mean$(\tau)$ / mean$(\tau_{\min})$")
+        pc.set(title=r"(c) variance, relative to $\tau_{\min}$", ylabel=r"var$(\tau)$ / var$(\tau_{\min})$")
+        for ax in (pa, pb, pc):
+            plot.log_axis(ax, "x")
+            ax.set_xlabel(xlabel)
+        plot.log_axis(pb, "y")
+        plot.log_axis(pc, "y")
+        handles, labels = pb.get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=len(labels))
+        fig.suptitle("Fig. 6  Scale stability of VNC and of the Eq. (1) baseline" if title is None else title)
+        return plot.save_figure(fig, path, vector=vector)
 
 
 def flow_auc(
@@ -446,7 +411,8 @@ def flow_auc(
     path: str | os.PathLike | None = None,
     *,
     title: str | None = None,
-    size: tuple[int, int] = (1000, 520),
+    size: tuple[int, int] = (1400, 560),
+    vector: str | None = "pdf",
 ) -> np.ndarray:
     """Fig. 8a: mean VNC-AUC per vertex across the flow's iterations, with the stage boundaries.
 
@@ -457,9 +423,10 @@ def flow_auc(
 
     Args:
         trajectory: a :class:`vnc_warp.flow.Trajectory` (its ``records`` and ``info["S_init"]``).
-        path: also write the PNG there.
-        title: figure title.
-        size: ``(width, height)`` in pixels.
+        path: also write the PNG there, and the ``vector`` copy beside it.
+        title: figure title ("" for none).
+        size: ``(width, height)`` of the PNG in pixels.
+        vector: "pdf", "svg" or None.
 
     Returns:
         (H, W, 3) uint8.
@@ -472,32 +439,36 @@ def flow_auc(
         raise ValueError("flow_auc: the trajectory has no records")
     s_init = float(trajectory.info.get("S_init", records[0]["S"]))
     v0 = float(records[0]["vertices"])
-    if all("history" in r for r in records[1:]) and len(records) > 1:
-        xs, ys, bx, by, bounds = [0.0], [s_init / v0], [], [], []
-        offset = 0
-        for r in records[1:]:
-            nv = float(r["vertices"])
-            hist = np.asarray(r["history"], np.float64).reshape(-1, 2)
-            xs += (offset + hist[:, 0]).tolist()
-            ys += (hist[:, 1] / nv).tolist()
-            budget = r.get("target_t", r["t"]) * s_init / nv
-            bx += [offset, offset + r["iterations"], np.nan]
-            by += [budget, budget, np.nan]
-            if offset > 0:
-                bounds.append(offset)
-            offset += int(r["iterations"])
-        series = {"mean VNC-AUC": (np.array(xs), np.array(ys)), "stage budget": (np.array(bx), np.array(by))}
-        xlabel = "flow iteration (stages end to end)"
-        note = "dashed: stage boundaries (SDF remesh); jumps there are remesh rebounds"
-    else:
-        stages = np.arange(len(records), dtype=np.float64)
-        series = {"mean VNC-AUC": (stages, np.array([r["S"] / r["vertices"] for r in records], np.float64))}
-        bounds, xlabel, note = [], "stage", "one point per stage (no per-iteration history recorded)"
-    img = line_plot(series, title="mean VNC-AUC per vertex", xlabel=xlabel,
-                    ylabel="mean VNC-AUC s (mesh units)", vlines=bounds, size=size)
     name = trajectory.info.get("source", "")
-    return _finish(_titled(img, title or f"Fig. 8a  Spacetime balance of VNC-Flow{': ' + name if name else ''}", note),
-                   path)
+    with plot.style():
+        fig, ax = plot.figure(size)
+        if all("history" in r for r in records[1:]) and len(records) > 1:
+            xs, ys, bx, by = [0.0], [s_init / v0], [], []
+            offset = 0
+            for r in records[1:]:
+                nv = float(r["vertices"])
+                hist = np.asarray(r["history"], np.float64).reshape(-1, 2)
+                xs += (offset + hist[:, 0]).tolist()
+                ys += (hist[:, 1] / nv).tolist()
+                budget = r.get("target_t", r["t"]) * s_init / nv
+                bx += [offset, offset + r["iterations"], np.nan]
+                by += [budget, budget, np.nan]
+                if offset > 0:
+                    ax.axvline(offset, color="0.55", ls=(0, (4, 3)), lw=0.6)
+                offset += int(r["iterations"])
+            ax.plot(xs, ys, color=plot.rgb(0), marker="o", ms=2.0, label=r"mean VNC-AUC $\bar{s}$ (Eq. 4)")
+            ax.plot(bx, by, color=plot.rgb(1), lw=1.0, label="stage budget (Algorithm 1)")
+            ax.set_xlabel("flow iteration (stages end to end; dashed: SDF remesh)")
+        else:
+            stages = np.arange(len(records), dtype=np.float64)
+            ax.plot(stages, [r["S"] / r["vertices"] for r in records], color=plot.rgb(0), marker="o", ms=3.0,
+                    label=r"mean VNC-AUC $\bar{s}$ (Eq. 4)")
+            ax.set_xlabel("stage (no per-iteration history recorded)")
+        ax.set_ylabel(r"$\bar{s}$ per vertex (mesh units)")
+        ax.legend(loc="upper right")
+        fig.suptitle((f"Fig. 8a  Spacetime balance of VNC-Flow{': ' + name if name else ''}") if title is None
+                     else title)
+        return plot.save_figure(fig, path, vector=vector)
 
 
 def adaptive_scales(
@@ -545,7 +516,7 @@ def adaptive_scales(
     tiles = [_frame(m, cam, frame_size, device, scalars=f, cmap=cmap, vmin=lim[0], vmax=lim[1])
              for m, f in zip(meshes, fields)]
     grid = _grid([tiles], frame=frame_size, labels=[list(labels) if labels else [m.name for m in meshes]])
-    bar = _colorbar_row(cmap, lim, "adaptive scale tau_adpt (mesh units)", grid.shape[1])
+    bar = _colorbar_row(cmap, lim, "adaptive scale τ (Eq. 6, mesh units)", grid.shape[1])
     img = _titled(_vstack([grid, bar], 6), title or "Fig. 8b  Adaptive scales (Eq. 6)",
                   "complex regions get small scales (dark), smooth regions large ones (bright)")
     return _finish(img, path)
@@ -608,7 +579,7 @@ def filmstrip(
     grid = _grid(cells, frame=frame_size, labels=[labels[k:k + cols] for k in range(0, len(labels), cols)])
     parts = [grid]
     if lim is not None:
-        parts.append(_colorbar_row(cmap, lim, "VNC H (dimensionless)", grid.shape[1]))
+        parts.append(_colorbar_row(cmap, lim, "VNC Ĥ (dimensionless)", grid.shape[1]))
     img = _titled(_vstack(parts, 6), title or "Fig. 9a  VNC-Flow trajectory",
                   "t (Eq. 7): remaining share of the initial total VNC-AUC, 1 = input, 0 = base shape")
     return _finish(img, path)
@@ -751,7 +722,8 @@ def latent_space(
     use_umap: bool = True,
     seed: int = 0,
     title: str | None = None,
-    panel_size: tuple[int, int] = (620, 480),
+    size: tuple[int, int] = (1400, 600),
+    vector: str | None = "pdf",
 ) -> np.ndarray:
     """Fig. 11: C-VAE latents in two dimensions, coloured by the normalized time ``t``.
 
@@ -762,11 +734,12 @@ def latent_space(
     Args:
         latents: (N, M, C) latent sets or (N, C) vectors (NumPy or torch).
         t: (N,) normalized times.
-        path: also write the PNG there.
+        path: also write the PNG there, and the ``vector`` copy beside it.
         use_umap: try UMAP for panel (a).
         seed: UMAP random state.
-        title: figure title.
-        panel_size: ``(width, height)`` of each panel.
+        title: figure title ("" for none).
+        size: ``(width, height)`` of the PNG in pixels.
+        vector: "pdf", "svg" or None.
 
     Returns:
         (H, W, 3) uint8.
@@ -774,7 +747,7 @@ def latent_space(
     Raises:
         ValueError: fewer than 3 samples or shapes that do not match.
     """
-    from vnc_warp.training.latent import pca, pearson
+    from .stats import pca, pearson
 
     z = np.asarray(_host(latents), np.float64)
     tt = np.asarray(_host(t), np.float64).reshape(-1)
@@ -801,15 +774,18 @@ def latent_space(
     if embedding is None:
         embedding = two_d(pca(max_pooled, k)["scores"])
     radius = np.linalg.norm(embedding - embedding.mean(axis=0), axis=1)
-    a = scatter_plot(embedding[:, 0], embedding[:, 1], c=tt, clabel="t",
-                     title=f"(a) {method}, max-pooled: r(radius, t) = {pearson(radius, tt):+.2f}",
-                     xlabel=f"{method} 1", ylabel=f"{method} 2", size=panel_size)
     p = pca(mean_pooled, k)
     scores = two_d(p["scores"])
-    b = scatter_plot(scores[:, 0], scores[:, 1], c=tt, clabel="t",
-                     title=f"(b) PCA, mean-pooled: |r(PC1, t)| = {abs(pearson(scores[:, 0], tt)):.2f}",
-                     xlabel=f"PC1 ({100 * p['explained_variance_ratio'][0]:.0f} % var.)",
-                     ylabel="PC2", size=panel_size)
-    note = f"{tt.size} latents coloured by t" + ("" if method == "UMAP" else "; UMAP not installed, PCA in (a)")
-    img = _titled(_hstack([a, b], 12), title or "Fig. 11  Latent space of the C-VAE", note)
-    return _finish(img, path)
+    with plot.style():
+        fig, (pa, pb) = plot.figure(size, ncols=2)
+        sc = plot._scatter(fig, pa, embedding[:, 0], embedding[:, 1], tt, cmap="viridis", vmin=0.0, vmax=1.0,
+                           clabel="", marker_size=14.0, colorbar=False)
+        plot._scatter(fig, pb, scores[:, 0], scores[:, 1], tt, cmap="viridis", vmin=0.0, vmax=1.0, clabel="",
+                      marker_size=14.0, colorbar=False)
+        pa.set(title=f"(a) {method} of max-pooled latents" + ("" if method == "UMAP" else " (no umap-learn)")
+                     + f"\n$r$(radius, $t$) = {pearson(radius, tt):+.2f}", xlabel=f"{method} 1", ylabel=f"{method} 2")
+        pb.set(title=f"(b) PCA of mean-pooled latents\n$|r$(PC1, $t$)$|$ = {abs(pearson(scores[:, 0], tt)):.2f}",
+               xlabel=f"PC1 ({100 * p['explained_variance_ratio'][0]:.0f} % of the variance)", ylabel="PC2")
+        fig.colorbar(sc, ax=[pa, pb], label="$t$ (Eq. 7)", shrink=0.9)
+        fig.suptitle(f"Fig. 11  Latent space of the C-VAE: {tt.size} latents" if title is None else title)
+        return plot.save_figure(fig, path, vector=vector)

@@ -6,7 +6,7 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
 * **Flow step**, Eq. (5): ``v_k <- v_k - lambda (H_soft(v_k, tau_k) - H_ref) n_soft(v_k, tau_k)`` with
   ``H_ref`` the vertex mean of ``H_soft`` at the current iterate (the scale-stable global reference: the
   mean barely depends on scale, Fig. 6, and taking it at the current state keeps the flow from drifting
-  inward or outward).
+  inward or outward), added in a fixed order (:func:`reference_mean`) so that a run repeats bit for bit.
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
   stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
@@ -41,11 +41,11 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import os
 import time
+import logging
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -58,11 +58,11 @@ from ._device import get_device
 from .mesh import Mesh, MeshError, load_mesh
 from .operators import vnc_soft
 from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
+from .trajectory import Trajectory, resume
 
-__all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "total_complexity", "sphericity",
-           "relative_thickness"]
+__all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "reference_mean", "total_complexity",
+           "sphericity", "relative_thickness"]
 
-FORMAT = "vnc-warp-trajectory/1"
 # An evaluation makes progress when S falls by more than this share below the stage's best so far.
 _PROGRESS = 1.0e-3
 
@@ -97,6 +97,9 @@ concave regions or parts flatter than the mean (a plate's faces still move apart
 With it the total VNC-AUC falls from the first step, every stage meets its budget in a few steps, and limbs
 shorten and fatten until they merge with the body and each other: the compact abstraction of Fig. 9a.
 """
+
+
+log = logging.getLogger(__name__)
 
 
 class FlowError(RuntimeError):
@@ -194,9 +197,11 @@ def sphericity(mesh: Mesh) -> float:
 
 
 def _device_sum(values: wp.array) -> float:
-    out = wp.zeros(1, dtype=wp.float64, device=values.device)
-    wp.launch(_k.sum_values, dim=values.shape[0], inputs=[values], outputs=[out], device=values.device)
-    return float(out.numpy()[0])
+    """``sum_k values[k]`` in float64, added in a fixed order (as :func:`reference_mean`), so that every decision
+    the stage controller takes on ``S`` repeats bit for bit on any device."""
+    partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=values.device)
+    wp.launch(_k.strided_sums, dim=partial.shape[0], inputs=[values], outputs=[partial], device=values.device)
+    return float(np.sum(partial.numpy(), dtype=np.float64))
 
 
 def total_complexity(mesh: Mesh, taus, *, kappa: float = 6.0, positions: wp.array | None = None, device=None) -> float:
@@ -214,7 +219,8 @@ class _Surface:
 
     @classmethod
     def of(cls, mesh: Mesh, device, positions: wp.array | None = None) -> _Surface:
-        x = wp.clone(positions) if positions is not None else wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+        x = wp.clone(positions) if positions is not None else wp.array(mesh.local_vertices, dtype=wp.vec3,
+                                                                         device=device)
         return cls(x, wp.array(mesh.faces.reshape(-1), dtype=wp.int32, device=device))
 
     def measures(self) -> tuple[float, float]:
@@ -277,77 +283,50 @@ def relative_thickness(mesh: Mesh, *, percentile: float = 5.0, samples: int = 40
     return float(np.percentile(hits, percentile) / np.sqrt(area / (4.0 * np.pi)))
 
 
-@dataclass
-class Trajectory:
-    """A VNC-Flow trajectory: meshes, their normalized times and per-stage records.
-
-    Attributes:
-        meshes: N+1 meshes; ``meshes[0]`` is the remeshed input (t = 1).
-        t: (N+1,) float64 normalized times (Eq. 7), decreasing from 1.
-        records: one dict per stage (t, S, iterations, seconds, sphericity, Euler characteristic, status, and ``history``: the
-            ``[iteration, S]`` pairs evaluated during the stage, the first taken after the stage's remesh).
-        info: trajectory-level facts (params, scales, S_init, phi_stage, source, version, device).
-    """
-
-    meshes: list
-    t: np.ndarray
-    records: list = field(default_factory=list)
-    info: dict = field(default_factory=dict)
-
-    @property
-    def complete(self) -> bool:
-        return len(self.meshes) == self.info.get("params", {}).get("stages", -1) + 1
-
-    def save(self, out_dir: str | os.PathLike) -> None:
-        """Write every stage mesh (PLY) that is not on disk yet, then the manifest (atomically)."""
-        os.makedirs(out_dir, exist_ok=True)
-        for rec, m in zip(self.records, self.meshes):
-            p = os.path.join(out_dir, rec["file"])
-            if not os.path.exists(p):
-                _atomic_mesh(m, p)
-        _write_manifest(out_dir, self)
-
-    @staticmethod
-    def load(out_dir: str | os.PathLike) -> "Trajectory":
-        """Read a trajectory written by :meth:`save` or ``vnc-warp flow`` (only the finished stages)."""
-        path = os.path.join(out_dir, "manifest.json")
-        if not os.path.exists(path):
-            raise FileNotFoundError(f"no trajectory manifest at {path}")
-        with open(path) as fh:
-            man = json.load(fh)
-        if man.get("format") != FORMAT:
-            raise FlowError(f"{path}: not a {FORMAT} manifest (format={man.get('format')!r})")
-        meshes = []
-        for rec in man["stages"]:
-            p = os.path.join(out_dir, rec["file"])
-            if not os.path.exists(p):
-                raise FlowError(f"{path}: stage {rec['index']} lists {rec['file']}, which is missing")
-            meshes.append(load_mesh(p, merge=False, name=rec["file"]))
-        info = {k: v for k, v in man.items() if k != "stages"}
-        return Trajectory(meshes, np.array([r["t"] for r in man["stages"]], dtype=np.float64), man["stages"], info)
-
-
-def _atomic_mesh(mesh: Mesh, path: str) -> None:
-    tmp = path + ".tmp.ply"
-    mesh.save(tmp)
-    os.replace(tmp, path)
-
-
-def _write_manifest(out_dir, traj: Trajectory) -> None:
-    man = dict(traj.info)
-    man["format"] = FORMAT
-    man["stages"] = traj.records
-    man["complete"] = traj.complete
-    tmp = os.path.join(out_dir, "manifest.json.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(man, fh, indent=1)
-    os.replace(tmp, os.path.join(out_dir, "manifest.json"))
-
-
 def _mesh_digest(mesh: Mesh) -> str:
     h = hashlib.sha256(np.ascontiguousarray(mesh.vertices).tobytes())
     h.update(np.ascontiguousarray(mesh.faces).tobytes())
     return h.hexdigest()[:16]
+
+
+def _local_edge_length(mesh: Mesh) -> np.ndarray:
+    """(V,) float32 mean length of each vertex's incident edges, in mesh units (float64 sums in edge order on the
+    host, so every device clamps the moves of Eq. (5) alike)."""
+    e = mesh.topology.edges
+    v = mesh.local_vertices.astype(np.float64)
+    length = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)
+    V = mesh.num_vertices
+    total = np.bincount(e[:, 0], length, V) + np.bincount(e[:, 1], length, V)
+    count = np.bincount(e[:, 0], minlength=V) + np.bincount(e[:, 1], minlength=V)
+    return (total / np.maximum(count, 1)).astype(np.float32)
+
+
+def reference_mean(H: wp.array, out: wp.array, *, partial: wp.array | None = None, tape: wp.Tape | None = None) -> None:
+    """``out[0] = mean_k H[k]``, the global reference ``H_ref`` of Eq. (5), added in a fixed order.
+
+    Float64 partial sums of a fixed stride (:data:`vnc_warp.kernels.flow.MEAN_PARTS`), then one thread adds them in
+    order: unlike an atomic float sum (whose order follows thread timing on CUDA) the result is the same on every
+    run and every device that computes the same ``H``, and within rounding of the float64 mean.
+
+    Args:
+        H: (V,) float32 values.
+        out: (1,) float32, overwritten.
+        partial: (MEAN_PARTS,) float64 scratch on ``H``'s device (allocated when None).
+        tape: the ``wp.Tape`` being recorded: the adjoint ``H.grad += out.grad / V`` is recorded on it.
+    """
+    device = H.device
+    V = H.shape[0]
+    if partial is None:
+        partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
+    wp.launch(_k.strided_sums, dim=partial.shape[0], inputs=[H], outputs=[partial], device=device, record_tape=False)
+    wp.launch(_k.ordered_mean, dim=1, inputs=[partial, wp.float64(1.0 / V)], outputs=[out], device=device,
+              record_tape=False)
+    if tape is not None:
+        def backward():
+            wp.launch(_k.mean_adjoint, dim=V, inputs=[out.grad, 1.0 / V], outputs=[H.grad], device=device,
+                      record_tape=False)
+
+        tape.record_func(backward=backward, arrays=[H, out])
 
 
 def flow_steps(
@@ -382,12 +361,13 @@ def flow_steps(
     V = mesh.num_vertices
     tau_arr = _per_point(tau, V, device, "tau")
     mm = _per_point(max_move, V, device, "max_move")
+    partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
     states = [positions]
     for _ in range(steps):
         x = states[-1]
         H, n = vnc_soft(mesh, tau_arr, kappa=kappa, positions=x, tape=tape)
         ref = wp.zeros(1, dtype=wp.float32, device=device, requires_grad=x.requires_grad)
-        wp.launch(_k.mean_value, dim=V, inputs=[H, 1.0 / V], outputs=[ref], device=device)
+        reference_mean(H, ref, partial=partial, tape=tape)
         out = wp.empty(V, dtype=wp.vec3, device=device, requires_grad=x.requires_grad)
         wp.launch(_k.flow_step, dim=V, inputs=[x, H, n, ref, float(lam), mm], outputs=[out], device=device)
         states.append(out)
@@ -433,10 +413,12 @@ class _Stepper:
         self.x_next = wp.empty_like(self.x)
         self.ref = wp.zeros(1, dtype=wp.float32, device=device)
         self.engine = _Engine(mesh, taus, p.kappa)
+        self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.lam = None
         self.S_start = None
         V = mesh.num_vertices
-        local, self.edge = self._edge_lengths()
+        local = _local_edge_length(mesh)
+        self.edge = mesh.mean_edge_length
         if p.method == "vnc":
             curve = self.engine.curve(self.x)
             s = vnc_auc(curve)
@@ -446,7 +428,7 @@ class _Stepper:
             else:
                 t = taus[0] if p.scale_mode == "small" else taus[-1]
                 self.tau = wp.full(V, np.float32(t), dtype=wp.float32, device=device)
-            self.max_move = local
+            self.max_move = wp.array(p.step_fraction * local, dtype=wp.float32, device=device)
             self.part = wp.zeros(V, dtype=wp.float32, device=device)
             self._thin_parts(curve)
         else:
@@ -464,23 +446,10 @@ class _Stepper:
                           float(p.tube_rho), float(p.ball_rho)],
                   outputs=[self.part], device=self.device)
 
-    def _edge_lengths(self) -> tuple[wp.array, float]:
-        """Per vertex ``step_fraction`` times its mean incident edge length, and the mean edge length."""
-        dev, V = self.device, self.mesh.num_vertices
-        edges = wp.array(self.mesh.topology.edges, dtype=wp.vec2i, device=dev)
-        total = wp.zeros(V, dtype=wp.float32, device=dev)
-        count = wp.zeros(V, dtype=wp.float32, device=dev)
-        wp.launch(_k.vertex_edge_length, dim=edges.shape[0], inputs=[self.x, edges], outputs=[total, count],
-                  device=dev)
-        local = wp.empty(V, dtype=wp.float32, device=dev)
-        wp.launch(_k.scaled_ratio, dim=V, inputs=[total, count, float(self.p.step_fraction)], outputs=[local],
-                  device=dev)
-        return local, 0.5 * _device_sum(total) / edges.shape[0]
-
     def _laplacian(self):
         import scipy.sparse as sp
 
-        v = self.mesh.vertices.astype(np.float64)
+        v = self.mesh.local_vertices.astype(np.float64)
         f = self.mesh.faces
         V = v.shape[0]
         rows, cols, vals = [], [], []
@@ -509,9 +478,8 @@ class _Stepper:
         p = self.p
         if p.method == "vnc":
             H, n = self.engine.soft(self.x, self.tau)
-            self.ref.zero_()
+            reference_mean(H, self.ref, partial=self.partial)
             V = self.mesh.num_vertices
-            wp.launch(_k.mean_value, dim=V, inputs=[H, 1.0 / V], outputs=[self.ref], device=self.device)
             if self.lam is None:
                 q = _quantile90(H, self.ref)
                 self.lam = min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
@@ -536,8 +504,23 @@ class _Stepper:
         return _device_sum(vnc_auc(curve))
 
     def current(self) -> Mesh:
+        """The current state in absolute coordinates (the device positions are relative to ``mesh.origin``)."""
         # a copy: on the CPU device .numpy() is a view of the array, which later steps overwrite
-        return Mesh(self.x.numpy().copy(), self.mesh.faces, self.mesh.topology, self.mesh.name)
+        local = self.x.numpy().copy()
+        origin = self.mesh.origin
+        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
+        mesh = Mesh(vertices, self.mesh.faces, self.mesh.topology, self.mesh.name, origin=origin)
+        mesh._cache["local_vertices"] = (vertices, local)
+        return mesh
+
+
+def _as_saved(mesh: Mesh, origin: np.ndarray | None = None) -> Mesh:
+    """The state as a resumed run reads it back: float32 vertices with no float64 history (the stage PLY holds
+    float32), so that a run resumed from its files continues bit-identically to one never interrupted. With
+    ``origin``, in the trajectory's frame: its :attr:`~vnc_warp.mesh.Mesh.local_vertices`, what the stages compute
+    on, are taken relative to ``origin`` (float64), the same for a state just made and one read from disk."""
+    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), mesh.faces, mesh.topology, mesh.name,
+                origin=None if origin is None else np.asarray(origin, np.float64))
 
 
 def _check_state(mesh: Mesh) -> str | None:
@@ -564,15 +547,17 @@ def flow(
     """Run VNC-Flow (Algorithm 1) and return the trajectory; see the module docstring for the rules.
 
     Args:
-        mesh: input mesh (path, trimesh or :class:`Mesh`); it must be watertight unless ``remesh`` is on
-            (the SDF remesher closes holes with the winding-number sign). With ``remesh`` on, non-manifold
-            edges and vertices, duplicate faces and several components are repaired by the first remesh,
-            with a warning that says what was repaired (also in ``info["repairs"]`` and stage 0's record).
+        mesh: input mesh: a :class:`Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path;
+            it must be watertight unless ``remesh`` is on (the SDF remesher closes holes with the winding-number
+            sign). With ``remesh`` on, non-manifold edges and vertices, duplicate faces and several components are
+            repaired by the first remesh, which says what it repaired (the ``vnc_warp`` logger) and records it
+            (``info["repairs"]`` and stage 0's ``remesh`` record).
         stages: number of stages N.
         faces: face count of the remeshed states (None: the input's).
         device: Warp device.
-        out_dir: write each stage as soon as it is finished (PLY + ``manifest.json``); if the folder already
-            holds a run with the same input and parameters, resume after its last finished stage.
+        out_dir: write each stage as soon as it is finished (PLY + ``manifest.json``, :mod:`vnc_warp.trajectory`);
+            if the folder already holds a run with the same input and parameters, resume after its last finished
+            stage. The folder is checked before anything is computed.
         progress: show a progress bar (stage, iterations, t, seconds).
         **params: any other :class:`FlowParams` field.
 
@@ -582,7 +567,9 @@ def flow(
     Raises:
         MeshError: the input is not watertight and ``remesh=False``, or is otherwise invalid, or its first
             remesh would not be a faithful surface (pass ``allow_changes=True`` to accept it).
-        FlowError: a VNC-Flow state failed validity (a bug), or ``out_dir`` holds a different run.
+        FlowError: a VNC-Flow state failed validity (a bug).
+        TrajectoryError: ``out_dir`` holds a different run, stage files it does not own, or damaged files.
+        OSError: ``out_dir`` cannot be created or written to.
     """
     from .remesh import RemeshWarning, _Remesher
 
@@ -603,7 +590,7 @@ def flow(
         name, digest = src.name, _mesh_digest(src)
     info = {"params": _params_key(p), "source": name, "source_digest": digest, "version": _version(),
             "device": str(device)}
-    traj = _resume(out_dir, info) if out_dir is not None else None
+    traj = resume(out_dir, info) if out_dir is not None else None
     t_start = time.perf_counter()
     if traj is None:
         rec = {"index": 0, "t": 1.0, "file": "stage_000.ply", "iterations": 0, "status": "input"}
@@ -611,11 +598,15 @@ def flow(
             m0, report = remesher(src)
             rec["remesh"] = report.to_dict()
             if report.changes:
-                warnings.warn(f"VNC-Flow {name}: the first remesh " + "; ".join(report.changes), RemeshWarning,
-                              stacklevel=2)
-            info.update(repairs=report.repairs, remesh_spacing=report.spacing)
+                message = f"VNC-Flow {name}: the first remesh " + "; ".join(report.changes)
+                if report.lost_area or report.dropped_components or "topology changed" in message:
+                    warnings.warn(message, RemeshWarning, stacklevel=2)
+                else:
+                    log.warning(message)
+            info.update(repairs=report.repairs, remesh_spacing=report.spacing, remesh_changes=report.changes)
         else:
             m0 = src
+        m0 = _as_saved(m0)
         taus = default_scales(m0, p.num_scales)
         S_init = total_complexity(m0, taus, kappa=p.kappa, device=device)
         if not S_init > 0:
@@ -625,11 +616,12 @@ def flow(
         traj = Trajectory([m0], np.array([1.0]), [rec], info)
         if out_dir is not None:
             traj.save(out_dir)
-    elif remesher is not None:
-        remesher.adopt(traj.meshes[-1], traj.info["remesh_spacing"], name)
+    # one frame for the whole trajectory: stage 0's centre, taken from its float32 vertices as stored
+    origin = _as_saved(traj.meshes[0]).origin
+    if remesher is not None:
+        remesher.adopt(_as_saved(traj.meshes[-1], origin), traj.info["remesh_spacing"], name)
     taus = np.asarray(traj.info["taus"])
     S_init = traj.info["S_init"]
-    positions = None
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -639,16 +631,16 @@ def flow(
         while len(traj.meshes) <= p.stages and traj.records[-1]["status"] != "collapsed":
             i = len(traj.meshes)
             t0 = time.perf_counter()
-            prev = traj.meshes[-1]
+            # the state as stored, so that a resumed run goes on from exactly what an uninterrupted one does
+            prev = _as_saved(traj.meshes[-1], origin)
             rec = {"index": i}
             if remesher is not None and i > 1:
-                if positions is None:
-                    positions = wp.array(prev.vertices, dtype=wp.vec3, device=device)
-                cur, report = remesher(positions=positions)
+                cur, report = remesher(positions=wp.array(prev.local_vertices, dtype=wp.vec3, device=device))
                 rec["remesh"] = report.to_dict()
             else:
                 cur = prev
-            state, positions = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
+            state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
+            state = _as_saved(state)
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             last = traj.records[-1]
             rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
@@ -819,16 +811,6 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
     wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(best)], outputs=[stepper.x],
               device=x_b.device)
     return best_S, 8
-
-
-def _resume(out_dir, info: dict) -> Trajectory | None:
-    if not os.path.exists(os.path.join(out_dir, "manifest.json")):
-        return None
-    traj = Trajectory.load(out_dir)
-    for key in ("params", "source_digest"):
-        if traj.info.get(key) != info[key]:
-            raise FlowError(f"{out_dir} holds a different run ({key} differs); use a new output folder")
-    return traj
 
 
 def _version() -> str:

@@ -1,9 +1,27 @@
 """Triangle meshes as the VNC operator sees them: merged vertices, checked topology, outward winding.
 
-Everything in vnc-warp runs on a :class:`Mesh`. :func:`load_mesh` builds one from a file or a
-``trimesh.Trimesh`` and refuses, with a message that says what and where, the inputs on which
+Everything in vnc-warp runs on a :class:`Mesh`. :func:`load_mesh` builds one from a file, a ``trimesh.Trimesh``
+or a ``(vertices, faces)`` pair and refuses, with a message that says what and where, the inputs on which
 Eqs. (1)-(3) are undefined: empty meshes, NaN coordinates, out-of-range indices, degenerate faces,
-non-manifold edges (three or more faces) and inconsistent winding.
+non-manifold edges (three or more faces) and inconsistent winding. Vertices at one position (texture seams) are
+merged so that the surface is one piece; ``Mesh.source_index`` keeps the map from the input's vertices to the
+mesh's.
+
+:func:`mesh_input` is the thin layer at the top of every public operator: it turns what a user holds (a
+:class:`Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair of NumPy arrays or torch tensors, or a path) into a
+:class:`MeshInput`, which hands per-vertex results back the way the user gave the mesh:
+
+========================================  =====================================================================
+the caller gave                           per-vertex results come back as
+========================================  =====================================================================
+a :class:`Mesh`                           Warp arrays on the device that computed them, one row per mesh vertex
+a ``trimesh.Trimesh``, a path, or a       NumPy arrays, one row per input vertex (``trimesh.vertices``, the
+``(V, F)`` pair of NumPy arrays           file's vertices, ``V``); vertices no face uses get NaN
+a ``(V, F)`` pair with ``V`` a tensor     torch tensors on ``V.device``, one row per row of ``V``
+========================================  =====================================================================
+
+Numerics do not depend on where a mesh sits: the operators read :attr:`Mesh.local_vertices`, float32 positions
+relative to the mesh's own centre :attr:`Mesh.origin`, taken from the input's float64 coordinates.
 """
 
 from __future__ import annotations
@@ -14,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Mesh", "EdgeTopology", "MeshError", "load_mesh", "from_arrays"]
+__all__ = ["Mesh", "EdgeTopology", "MeshError", "MeshInput", "load_mesh", "from_arrays", "mesh_input"]
 
 
 class MeshError(ValueError):
@@ -94,13 +112,25 @@ class Mesh:
         faces: (F, 3) int32 vertex indices, outward winding when the mesh is closed.
         topology: the mesh's :class:`EdgeTopology`.
         name: where it came from, for messages and file names.
+        source_index: (V_in,) int64, for each vertex of the input the mesh was built from (the file's, the
+            trimesh's, the ``V`` of a pair), the mesh vertex it became; -1 for a vertex no face uses. None when
+            the input's vertices are the mesh's, in the same order (nothing merged or dropped).
+        origin: (3,) float64 centre of the bounding box, the origin of :attr:`local_vertices`; None: computed
+            from ``vertices`` when first needed.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     topology: EdgeTopology
     name: str = "mesh"
+    source_index: np.ndarray | None = field(default=None, repr=False)
+    origin: np.ndarray | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.origin is None:
+            v = np.asarray(self.vertices)
+            self.origin = 0.5 * (v.min(0).astype(np.float64) + v.max(0).astype(np.float64))
 
     @property
     def num_vertices(self) -> int:
@@ -130,34 +160,43 @@ class Mesh:
         return hit[1] if hit is not None and hit[0] is self.vertices else None
 
     @property
+    def local_vertices(self) -> np.ndarray:
+        """(V, 3) float32 positions relative to :attr:`origin`: what the operators compute on, so that a mesh far
+        from the coordinate origin (a scan in survey coordinates, a part at 1e6 units) loses no precision. Taken
+        from the input's float64 coordinates when the mesh was built from them (:func:`from_arrays`)."""
+        return self._memo("local_vertices", lambda: (self.vertices.astype(np.float64) - self.origin).astype(np.float32))
+
+    @property
     def mean_edge_length(self) -> float:
         e = self.topology.edges
-        return self._memo("mean_edge_length", lambda: float(
-            np.linalg.norm(self.vertices[e[:, 0]] - self.vertices[e[:, 1]], axis=1).mean()))
+        return self._memo("mean_edge_length", lambda: float(np.linalg.norm(
+            self.local_vertices[e[:, 0]].astype(np.float64) - self.local_vertices[e[:, 1]], axis=1).mean()))
 
     @property
     def bbox_diagonal(self) -> float:
+        v = self.local_vertices
         return self._memo("bbox_diagonal",
-                          lambda: float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0))))
+                          lambda: float(np.linalg.norm(v.max(0).astype(np.float64) - v.min(0))))
 
     def area(self) -> float:
-        v = self.vertices.astype(np.float64)
+        v = self.local_vertices.astype(np.float64)
         f = self.faces
         return float(0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
 
     def volume(self) -> float:
         """Signed volume (positive for outward winding of a closed mesh)."""
-        v = self.vertices.astype(np.float64)
+        v = self.local_vertices.astype(np.float64)
         f = self.faces
         return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
 
     def with_vertices(self, vertices: Any) -> "Mesh":
-        """The same connectivity with new positions (e.g. a flow step); the topology is shared."""
-        v = np.asarray(vertices, dtype=np.float32)
-        if v.shape != self.vertices.shape:
-            raise MeshError(f"with_vertices: expected shape {self.vertices.shape}, got {v.shape}")
-        _check_finite(v, self.name)
-        return Mesh(np.ascontiguousarray(v), self.faces, self.topology, self.name)
+        """The same connectivity with new positions (e.g. a flow step); the topology and ``source_index`` are
+        shared."""
+        v64 = _host_array(vertices).astype(np.float64)
+        if v64.shape != self.vertices.shape:
+            raise MeshError(f"with_vertices: expected shape {self.vertices.shape}, got {v64.shape}")
+        _check_finite(v64, self.name)
+        return _mesh(v64, self.faces, self.topology, self.name, self.source_index)
 
     def to_trimesh(self):
         import trimesh
@@ -175,6 +214,30 @@ class Mesh:
         return f"Mesh({self.name!r}, V={self.num_vertices}, F={self.num_faces}, watertight={self.is_watertight})"
 
 
+def _mesh(v64: np.ndarray, faces: np.ndarray, topology: EdgeTopology, name: str,
+          source_index: np.ndarray | None) -> Mesh:
+    """A Mesh of float64 positions ``v64``: float32 ``vertices`` and, from the float64 values, the float32
+    :attr:`Mesh.local_vertices` about the bounding-box centre."""
+    origin = 0.5 * (v64.min(0) + v64.max(0))
+    vertices = np.ascontiguousarray(v64, dtype=np.float32)
+    mesh = Mesh(vertices, faces, topology, name, source_index, origin)
+    mesh._cache["local_vertices"] = (vertices, np.ascontiguousarray(v64 - origin, dtype=np.float32))
+    return mesh
+
+
+def _host_array(a: Any) -> np.ndarray:
+    """A NumPy view or copy of an array-like: NumPy, lists, torch tensors on any device, Warp arrays."""
+    if hasattr(a, "detach") and hasattr(a, "cpu"):  # torch.Tensor
+        return a.detach().cpu().numpy()
+    if hasattr(a, "numpy") and hasattr(a, "device") and hasattr(a, "dtype") and not isinstance(a, np.ndarray):
+        return a.numpy()  # wp.array
+    return np.asarray(a)
+
+
+def _is_scalar(a: Any) -> bool:
+    return a.ndim == 0 if hasattr(a, "ndim") else np.ndim(a) == 0
+
+
 def _check_finite(v: np.ndarray, name: str) -> None:
     bad = np.nonzero(~np.isfinite(v).all(axis=1))[0]
     if bad.size:
@@ -186,14 +249,15 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
 
     Vertices at identical positions are merged (``merge=True``) so texture seams do not read as
     boundaries; unreferenced vertices are dropped; a closed mesh with negative volume is flipped so
-    that its normals point outward (the convexity sign of Eq. (1) needs that).
+    that its normals point outward (the convexity sign of Eq. (1) needs that). ``Mesh.source_index`` maps each
+    input vertex to the mesh vertex it became (-1: dropped).
 
     Raises:
         MeshError: empty mesh, wrong shapes, NaN/inf coordinates, indices out of range, degenerate
             faces (repeated indices or zero area), non-manifold edges, inconsistent winding.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
+    v = _host_array(vertices).astype(np.float64)
+    f = _host_array(faces)
     if v.size == 0 or f.size == 0:
         raise MeshError(f"{name}: empty mesh ({v.reshape(-1, 3).shape[0] if v.size else 0} vertices, "
                         f"{f.reshape(-1, 3).shape[0] if f.size else 0} faces)")
@@ -208,13 +272,15 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
     if out.size:
         raise MeshError(f"{name}: {out.size} face(s) index vertices outside [0, {v.shape[0]}), e.g. faces {_first(out)}")
     f = f.astype(np.int64)
+    index = np.arange(v.shape[0], dtype=np.int64)  # input vertex -> mesh vertex
     if merge:
         # keep the first occurrence's order, so a mesh without duplicates keeps its vertex order
         uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
         order = np.argsort(first)
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)
-        f = rank[inv.reshape(-1)][f]
+        index = rank[inv.reshape(-1)]
+        f = index[f]
         v = uniq[order]
     used = np.unique(f)
     if used.size < v.shape[0]:
@@ -222,6 +288,7 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
         remap[used] = np.arange(used.size)
         v = v[used]
         f = remap[f]
+        index = remap[index]
     rep = np.nonzero((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0]))[0]
     if rep.size:
         raise MeshError(f"{name}: {rep.size} degenerate face(s) repeat a vertex index, e.g. faces {_first(rep)}; "
@@ -233,15 +300,19 @@ def from_arrays(vertices: Any, faces: Any, *, name: str = "mesh", merge: bool = 
         raise MeshError(f"{name}: {zero.size} degenerate face(s) have zero area, e.g. faces {_first(zero)}; "
                         "remove them first (trimesh: mesh.update_faces(mesh.nondegenerate_faces()))")
     f = f.astype(np.int32)
-    topo, inconsistent = _build_topology(f, v)
+    try:
+        topo, inconsistent = _build_topology(f, v)
+    except MeshError as exc:
+        raise MeshError(f"{name}: {exc}") from None
     if inconsistent:
         raise MeshError(f"{name}: inconsistent winding: {inconsistent} interior edge(s) are traversed in the same "
                         "direction by both their faces; fix it first (trimesh.repair.fix_winding)")
-    mesh = Mesh(np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f), topo, name)
+    identity = index.size == v.shape[0] and bool((index == np.arange(index.size)).all())
+    mesh = _mesh(v, np.ascontiguousarray(f), topo, name, None if identity else index)
     if mesh.is_watertight and mesh.volume() < 0.0:
         f = np.ascontiguousarray(f[:, ::-1])
         topo, _ = _build_topology(f)
-        mesh = Mesh(mesh.vertices, f, topo, name)
+        mesh = _mesh(v, f, topo, name, mesh.source_index)
     return mesh
 
 
@@ -249,16 +320,18 @@ def load_mesh(source: Any, *, name: str | None = None, merge: bool = True) -> Me
     """Load a :class:`Mesh` from a path (any format trimesh reads), a ``trimesh.Trimesh`` or a Mesh.
 
     Args:
-        source: file path, ``trimesh.Trimesh``, ``(vertices, faces)`` tuple, or :class:`Mesh`.
+        source: file path, ``trimesh.Trimesh``, ``(vertices, faces)`` pair (NumPy arrays, lists or torch
+            tensors), or :class:`Mesh` (returned as it is).
         name: label used in messages; defaults to the file name.
         merge: merge vertices at identical positions (texture seams).
 
     Returns:
-        The checked mesh; see :func:`from_arrays` for what is checked and repaired.
+        The checked mesh; see :func:`from_arrays` for what is checked and repaired. ``mesh.source_index`` maps
+        the source's vertices (the file's, in the file's order) to the mesh's.
     """
     if isinstance(source, Mesh):
         return source
-    if isinstance(source, tuple) and len(source) == 2:
+    if isinstance(source, (tuple, list)) and len(source) == 2:
         return from_arrays(source[0], source[1], name=name or "mesh", merge=merge)
     import trimesh
 
@@ -267,7 +340,8 @@ def load_mesh(source: Any, *, name: str | None = None, merge: bool = True) -> Me
         if not os.path.exists(path):
             raise FileNotFoundError(f"mesh file not found: {path}")
         try:
-            tm = trimesh.load(path, process=False, force="mesh")
+            # maintain_order: the file's own vertices, in its order (OBJ texture seams are not split)
+            tm = trimesh.load(path, process=False, force="mesh", maintain_order=True)
         except Exception as exc:  # trimesh raises many types for unreadable files
             raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
         name = name or os.path.basename(path)
@@ -275,7 +349,116 @@ def load_mesh(source: Any, *, name: str | None = None, merge: bool = True) -> Me
         tm = source
         name = name or "trimesh"
     else:
-        raise TypeError(f"load_mesh: expected a path, trimesh.Trimesh, (vertices, faces) or Mesh, got {type(source).__name__}")
+        raise TypeError(f"expected a vw.Mesh, a trimesh.Trimesh, a (vertices, faces) pair or a path, "
+                        f"got {type(source).__name__}")
     if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
         raise MeshError(f"{name}: empty mesh (no triangles)")
     return from_arrays(np.asarray(tm.vertices), np.asarray(tm.faces), name=name, merge=merge)
+
+
+KINDS = ("warp", "numpy", "torch")
+
+
+@dataclass(frozen=True)
+class MeshInput:
+    """A public function's mesh argument as a :class:`Mesh`, and the way its per-vertex results go back.
+
+    Made by :func:`mesh_input`; see the module docstring for the rule.
+
+    Attributes:
+        mesh: the checked mesh the computation runs on (vertices merged, unused ones dropped).
+        index: (V_in,) int64: for each of the caller's vertices the mesh vertex it became (-1: no face uses it);
+            None when the caller's vertices are the mesh's.
+        kind: "warp" (the caller gave a :class:`Mesh`), "numpy" or "torch".
+        torch_device: the device of the caller's tensor (kind "torch"), else None.
+    """
+
+    mesh: Mesh
+    index: np.ndarray | None
+    kind: str
+    torch_device: Any = None
+
+    @property
+    def device(self):
+        """The device to compute on when the caller names none: the tensor's (kind "torch"), else None."""
+        return self.torch_device
+
+    @property
+    def num_input_vertices(self) -> int:
+        return self.mesh.num_vertices if self.index is None else int(self.index.size)
+
+    def to_mesh_vertices(self, values: Any, what: str) -> Any:
+        """Per-vertex values given per caller vertex ((V_in,) array-like) as (V,) per mesh vertex (the first input
+        vertex of each merged one speaks for it); scalars, Warp arrays and per-mesh-vertex arrays pass as they are."""
+        import warp as wp
+
+        if self.index is None or values is None or isinstance(values, wp.array) or _is_scalar(values):
+            return values
+        arr = _host_array(values)
+        if arr.shape[:1] == (self.mesh.num_vertices,) and arr.shape[0] != self.index.size:
+            return arr
+        if arr.shape[:1] != (self.index.size,):
+            raise ValueError(f"{what}: expected a scalar or one value per vertex ({self.index.size},), got "
+                             f"shape {arr.shape}")
+        valid = np.nonzero(self.index >= 0)[0]
+        _, first = np.unique(self.index[valid], return_index=True)
+        return arr[valid[first]]
+
+    def per_point(self, values):
+        """A result with one row per query point (no vertex map), in the caller's kind."""
+        return self._answer(values, None, 0)
+
+    def per_vertex(self, values, *, axis: int = 0):
+        """A result computed per mesh vertex (a Warp array whose ``axis`` runs over the vertices) as the caller
+        gets it: the Warp array itself (kind "warp"), or one row per caller vertex as NumPy or torch, NaN for
+        vertices no face uses."""
+        return self._answer(values, self.index, axis)
+
+    def _answer(self, values, index: np.ndarray | None, axis: int):
+        if self.kind == "warp":
+            return values
+        if self.kind == "numpy":
+            a = values.numpy()
+            if index is None:
+                return a.copy() if values.device.is_cpu else a  # a CPU array's .numpy() is a view of it
+            out = np.take(a, np.maximum(index, 0), axis=axis)
+            if (index < 0).any():
+                out[(slice(None),) * (axis % out.ndim) + (index < 0,)] = np.nan
+            return out
+        import torch
+        import warp as wp
+
+        t = wp.to_torch(values) if values.device.is_cuda else torch.from_numpy(values.numpy())
+        if index is None:
+            return t.to(self.torch_device).clone()
+        idx = torch.as_tensor(index, device=t.device)
+        out = torch.index_select(t, axis, idx.clamp(min=0))
+        if (index < 0).any():
+            shape = [1] * out.ndim
+            shape[axis] = -1
+            out = torch.where((idx < 0).reshape(shape), torch.full_like(out, float("nan")), out)
+        return out.to(self.torch_device)
+
+
+def mesh_input(source: Any, *, name: str | None = None) -> MeshInput:
+    """What a user holds, as a :class:`MeshInput`: the :class:`Mesh` to compute on and how results go back.
+
+    Args:
+        source: a :class:`Mesh`; a ``trimesh.Trimesh``; a ``(V, F)`` pair of (V, 3) positions and (F, 3) indices
+            (NumPy arrays, lists or torch tensors); or a path to any file trimesh reads (its vertices in the file's
+            order).
+        name: label used in messages.
+
+    Returns:
+        The :class:`MeshInput`; kind "warp" for a Mesh, "torch" for a pair whose ``V`` is a tensor, else "numpy".
+
+    Raises:
+        TypeError: anything else. MeshError, FileNotFoundError: see :func:`load_mesh`.
+    """
+    if isinstance(source, Mesh):
+        return MeshInput(source, None, "warp")
+    if isinstance(source, (tuple, list)) and len(source) == 2 and hasattr(source[0], "detach"):
+        mesh = from_arrays(source[0], source[1], name=name or "tensor mesh")
+        return MeshInput(mesh, mesh.source_index, "torch", source[0].device)
+    mesh = load_mesh(source, name=name)
+    return MeshInput(mesh, mesh.source_index, "numpy")

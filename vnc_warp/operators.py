@@ -1,8 +1,13 @@
 """The VNC operator (paper Sec. 3.1): VNC-soft (Eq. 3), VNC-hard (Eq. 2) and the integrated measure (Eq. 1).
 
-Every function takes a :class:`~vnc_warp.Mesh` and returns Warp arrays on the device it ran on
-(``.numpy()`` gives NumPy). Scales are in the mesh's own units; :func:`vnc_warp.default_scales` derives
-a range from the mesh.
+Every operator takes the mesh as the user holds it: a :class:`~vnc_warp.Mesh` (results are Warp arrays on the
+device that computed them; ``.numpy()`` gives NumPy), a ``trimesh.Trimesh``, a ``(V, F)`` pair or a path (NumPy
+arrays, one row per input vertex), or a ``(V, F)`` pair of torch tensors (tensors on ``V``'s device); see
+:func:`vnc_warp.mesh.mesh_input`. Vertices at one position are merged for the topology and answered per input
+vertex. Scales are in the mesh's own units; :func:`vnc_warp.default_scales` derives a range from the mesh. The
+kernels run on coordinates relative to the mesh's centre (:attr:`~vnc_warp.Mesh.local_vertices`), so a result does
+not depend on where the mesh sits. A call whose every vertex has nothing in reach (a scale below the distance to
+the nearest edge midpoint, or a ``kappa`` so large that every Gaussian weight underflows) warns once, saying which.
 
 Differentiation: :func:`vnc_soft` records itself on a ``wp.Tape`` passed as ``tape=`` (with the vertex
 positions given as a ``wp.array`` that ``requires_grad``); :mod:`vnc_warp.torch` wraps the same
@@ -19,6 +24,7 @@ every time.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,10 +34,10 @@ from vnc_warp.kernels import vnc as _k
 
 from . import _pairs, _replay
 from ._device import get_device
-from .mesh import Mesh, MeshError
+from .mesh import Mesh, MeshError, MeshInput, mesh_input
 
 __all__ = ["EdgeFields", "edge_fields", "vnc_soft", "vnc_hard", "integrated_mean_curvature", "choose_strategy",
-           "STRATEGIES"]
+           "STRATEGIES", "DegenerateResultWarning"]
 
 STRATEGIES = _pairs.STRATEGIES
 
@@ -67,9 +73,9 @@ def _edge_array(mesh: Mesh, device) -> wp.array:
 
 
 def _mesh_vertices(mesh: Mesh, device) -> wp.array:
-    """``mesh.vertices`` on ``device``, copied once per vertex array (a Mesh's arrays are treated as immutable);
-    read-only for every caller."""
-    return mesh._memo(("vertices", str(device)), lambda: wp.array(mesh.vertices, dtype=wp.vec3, device=device))
+    """The mesh's vertices on ``device``, relative to its centre (``mesh.local_vertices``), copied once per vertex
+    array (a Mesh's arrays are treated as immutable); read-only for every caller."""
+    return mesh._memo(("vertices", str(device)), lambda: wp.array(mesh.local_vertices, dtype=wp.vec3, device=device))
 
 
 def _own_vertices(mesh: Mesh, x: wp.array) -> bool:
@@ -85,8 +91,8 @@ def _host_bounds(mesh: Mesh, x: wp.array, radius_stats, lengths: bool = False) -
     follow are queued while the device still works on earlier ones."""
     if radius_stats is None or not _own_vertices(mesh, x):
         return None
-    lo, hi = mesh._memo("bbox", lambda: (mesh.vertices.min(0).astype(np.float64),
-                                         mesh.vertices.max(0).astype(np.float64)))
+    lo, hi = mesh._memo("bbox", lambda: (mesh.local_vertices.min(0).astype(np.float64),
+                                         mesh.local_vertices.max(0).astype(np.float64)))
     lmax = lmean = 0.0
     if lengths:
         L = _interior_lengths(mesh)
@@ -100,7 +106,7 @@ def _interior_lengths(mesh: Mesh) -> np.ndarray:
     """The interior edges' lengths on the host, sorted (once per vertex array)."""
     def lengths():
         e = mesh.topology.interior
-        v = mesh.vertices
+        v = mesh.local_vertices
         return np.sort(np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1).astype(np.float32))
 
     return mesh._memo("interior_lengths_sorted", lengths)
@@ -136,6 +142,14 @@ def _positions(mesh: Mesh, positions, device) -> wp.array:
     return positions
 
 
+def _check_values(mesh: Mesh, x: wp.array, radius: wp.array) -> None:
+    """Refuse NaN or infinite positions and scales that are not positive and finite, given on the device (the grid
+    and dense traversals check them while reading their bounds, :func:`vnc_warp._pairs.bounds`; the BVH one
+    calls this). A mesh's own vertices were checked when it was made."""
+    if not _own_vertices(mesh, x) or isinstance(radius, wp.array):
+        _pairs.bounds(x, radius)
+
+
 def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = None) -> wp.array:
     """A positive, finite scalar or (count,) array as a float32 wp.array on ``device`` (a scalar's array from
     ``pool``, when given)."""
@@ -160,9 +174,10 @@ def _per_point(value, count: int, device, what: str, pool: _pairs.Pool | None = 
 
 
 def edge_fields(mesh: Mesh, *, positions: wp.array | None = None, device=None, requires_grad: bool = False) -> EdgeFields:
-    """Midpoints, lengths, signed dihedral angles and normals of the interior edges.
+    """Midpoints, lengths, signed dihedral angles and normals of the interior edges of a :class:`Mesh`.
 
-    Launched as a differentiable kernel: inside a ``wp.Tape`` it is recorded like any Warp launch.
+    Launched as a differentiable kernel: inside a ``wp.Tape`` it is recorded like any Warp launch. Without
+    ``positions`` the midpoints are relative to ``mesh.origin`` (the operators' frame, ``mesh.local_vertices``).
     """
     device = positions.device if positions is not None else get_device(device)
     return _edge_fields(mesh, _positions(mesh, positions, device), requires_grad)
@@ -299,7 +314,7 @@ def _soft_cells(mesh, x, tau_arr, kappa, f, outputs, b: _pairs.Bounds, strategy:
 
 
 def vnc_soft(
-    mesh: Mesh,
+    mesh,
     tau,
     *,
     kappa: float = 6.0,
@@ -307,7 +322,7 @@ def vnc_soft(
     positions: wp.array | None = None,
     tape: wp.Tape | None = None,
     strategy: str = "auto",
-) -> tuple[wp.array, wp.array]:
+):
     """VNC-soft, Eq. (3): Gaussian-weighted normalized mean curvature and averaged normal per vertex.
 
     ``H(v_k) = sum_j alpha_j delta_j w_kj L_j / (2 sum_j w_kj L_j)`` with ``w_kj = exp(-|v_k - m_j|^2 / 2 sigma^2)``,
@@ -316,19 +331,114 @@ def vnc_soft(
     ``exp(-kappa^2 / 2)`` per edge.
 
     Args:
-        mesh: the mesh (its connectivity; positions from ``mesh.vertices`` unless ``positions`` is given).
-        tau: observation scale (mesh units): a scalar or a (V,) array of per-vertex scales.
+        mesh: a :class:`~vnc_warp.Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path
+            (see :func:`vnc_warp.mesh.mesh_input`). With a torch ``V`` the call is differentiable through
+            :func:`vnc_warp.torch.vnc_soft`.
+        tau: observation scale (mesh units): a scalar or one value per vertex (of the input).
         kappa: ratio of cut-off radius to Gaussian width (the paper uses 6).
-        device: Warp device; defaults to ``positions.device`` or the preferred device.
-        positions: (V,) vec3 ``wp.array`` overriding the vertex positions, e.g. with ``requires_grad=True``.
-        tape: a ``wp.Tape`` to record on; pass the tape you are inside to differentiate through this call.
+        device: Warp device; defaults to ``positions.device``, a tensor's device, or the preferred device.
+        positions: (V,) vec3 ``wp.array`` overriding the vertex positions of a :class:`~vnc_warp.Mesh`, e.g. with
+            ``requires_grad=True``.
+        tape: a ``wp.Tape`` to record on; pass the tape you are inside to differentiate through this call (with
+            ``positions`` that require gradients).
         strategy: how pairs within the cut-off are found: "auto", "grid", "dense" or "bvh" (same result; the
             backward pass visits the same pairs as the forward).
 
     Returns:
-        ``(H, n)``: (V,) float32 dimensionless curvature (positive on convex regions) and (V,) vec3 unit normals.
-        A vertex with no edge in reach gets ``H = 0`` and ``n = 0``.
+        ``(H, n)``: dimensionless curvature (positive on convex regions) and unit normals, per vertex: (V,) float32
+        and (V,) vec3 Warp arrays for a Mesh, (V_in,) and (V_in, 3) NumPy arrays for a trimesh, pair or path, torch
+        tensors for tensors. A vertex with no edge in reach gets ``H = 0`` and ``n = 0``; a vertex no face uses,
+        NaN.
     """
+    src = mesh_input(mesh)
+    _mesh_only(src, "vnc_soft", positions=positions, tape=tape)
+    if src.kind == "torch":
+        from .torch import _vnc_soft_input
+
+        return _vnc_soft_input(mesh[0], src, tau, kappa=kappa, device=device)
+    tau = src.to_mesh_vertices(tau, "tau")
+    H, n = _vnc_soft(src.mesh, tau, kappa=kappa, device=device if device is not None else src.device,
+                     positions=positions, tape=tape, strategy=strategy)
+    if positions is None:
+        _warn_if_degenerate("vnc_soft", src, tau, kappa, n)
+    return src.per_vertex(H), src.per_vertex(n)
+
+
+def _mesh_only(src: MeshInput, op: str, **advanced) -> None:
+    """Arguments that address a Mesh's own vertex order need a :class:`Mesh`."""
+    given = [k for k, v in advanced.items() if v is not None]
+    if given and src.kind != "warp":
+        raise TypeError(f"{op}: {', '.join(given)}= needs a vw.Mesh (its own vertex order); "
+                        "make one with vw.load_mesh(...)")
+
+
+class DegenerateResultWarning(UserWarning):
+    """A result that is zero for a reason outside the surface: no edge in reach, or weights that underflow."""
+
+
+_warned: set = set()
+
+
+def _warn_if_degenerate(op: str, src: MeshInput, tau, kappa: float | None, n: wp.array, *, soft: bool = True) -> None:
+    """Warn once per operator and reason when no vertex had anything in reach (``n = 0`` everywhere: on a flat
+    mesh ``n`` is not zero, so only the reach is tested). Checked where reading ``n`` costs nothing: on the CPU,
+    or when the results go to the host anyway."""
+    if n.device.is_cuda and src.kind == "warp":
+        return
+    if np.any(n.numpy()):
+        return
+    reason = _degenerate_reason(src.mesh, tau, kappa, soft=soft)
+    if reason is not None:
+        _warn_once(op, reason[0], f"{op} on {src.mesh.name}: every vertex got H = 0 and n = 0: {reason[1]}")
+
+
+def _warn_once(op: str, reason: str, message: str) -> None:
+    """A :class:`DegenerateResultWarning`, once per operator and reason in a process (stack: user, operator,
+    checker, here)."""
+    if (op, reason) not in _warned:
+        _warned.add((op, reason))
+        warnings.warn(message, DegenerateResultWarning, stacklevel=4)
+
+
+def _degenerate_reason(mesh: Mesh, tau, kappa: float | None, *, soft: bool) -> tuple[str, str] | None:
+    """Why nothing was in reach anywhere: ``("reach", text)`` or ``("kappa", text)``; None when neither explains it."""
+    from scipy.spatial import cKDTree
+
+    v = mesh.local_vertices.astype(np.float64)
+    e = mesh.topology.interior
+    if e.shape[0] == 0:
+        return None
+    d = cKDTree(0.5 * (v[e[:, 0]] + v[e[:, 1]])).query(v)[0]
+    t = np.broadcast_to(np.asarray(_host_values(tau), np.float64), d.shape)
+    edge = mesh.mean_edge_length
+    if soft and (t < d).all():
+        return "reach", (f"tau = {_fmt(t)} is below every vertex's distance to its nearest edge midpoint (at least "
+                         f"{d.min():.4g}, {d.min() / edge:.2f} mean edge lengths), so no edge is within reach; take "
+                         f"tau of a few mean edge lengths (vw.default_scales)")
+    if kappa is not None:
+        sigma = t / float(kappa)
+        ratio = float((d / sigma).min())
+        if ratio > 13.0:
+            return "kappa", (f"kappa = {kappa:g} makes sigma = tau / kappa = {_fmt(sigma)}, and the nearest edge "
+                             f"midpoints are {ratio:.0f} sigma away or more: every Gaussian weight exp(-d^2 / 2 "
+                             f"sigma^2) underflows to 0 in float32; the paper uses kappa = 6")
+    return None
+
+
+def _host_values(value):
+    return value.numpy() if isinstance(value, wp.array) else (
+        value.detach().cpu().numpy() if hasattr(value, "detach") else value)
+
+
+def _fmt(a: np.ndarray) -> str:
+    a = np.asarray(a)
+    lo, hi = float(a.min()), float(a.max())
+    return f"{lo:.4g}" if lo == hi else f"{lo:.4g}..{hi:.4g}"
+
+
+def _vnc_soft(mesh: Mesh, tau, *, kappa: float, device, positions: wp.array | None, tape: wp.Tape | None,
+              strategy: str) -> tuple[wp.array, wp.array]:
+    """:func:`vnc_soft` on a :class:`Mesh`: Warp arrays per mesh vertex."""
     if not (kappa > 0.0):
         raise ValueError(f"kappa must be positive for VNC-soft, got {kappa}")
     _pairs.check_strategy(strategy)
@@ -357,7 +467,10 @@ def _host_scalar(value, what: str) -> float | None:
     """``value`` as a float when it is a scalar given on the host (checked positive and finite), else None."""
     if isinstance(value, wp.array) or (hasattr(value, "requires_grad") and value.requires_grad) or np.ndim(value) != 0:
         return None
-    v = float(value.detach().cpu() if hasattr(value, "detach") else value)
+    try:
+        v = float(value.detach().cpu() if hasattr(value, "detach") else value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{what} must be a positive number or an array of per-point values, got {value!r}") from None
     if not (np.isfinite(v) and v > 0.0):
         raise ValueError(f"{what} must be positive and finite, got {v}")
     return v
@@ -381,6 +494,7 @@ def _soft_call(mesh, x, tau, kappa: float, strategy: str, pool, fresh: bool):
     else:
         outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
     if strategy == "bvh":
+        _check_values(mesh, x, tau_arr)
         backward = _soft_bvh(x, tau_arr, kappa, f, outputs)
     else:
         b = _host_bounds(mesh, x, _radius_stats(tau)) or _pairs.bounds(x, tau_arr)
@@ -491,6 +605,7 @@ def _ball_sums(mesh: Mesh, points, radius, g, device, strategy: str, x: wp.array
     outputs = [_pairs._empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
     outputs += [_pairs._empty(None if fresh else pool, device, P, dt) for dt in (wp.float32, wp.vec3)]
     if strategy == "bvh":
+        _check_values(mesh, x, radius)
         bvh = _segment_bvh(x, f)
         wp.launch(_k.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
                   outputs=outputs[:3], device=device)
@@ -563,8 +678,7 @@ def _ball_call(mesh: Mesh, device, tau, kappa: float | None, strategy: str, pool
                       pool=pool, fresh=fresh)
 
 
-def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
-             strategy: str = "auto") -> tuple[wp.array, wp.array]:
+def vnc_hard(mesh, tau, *, kappa: float | None = 6.0, device=None, strategy: str = "auto"):
     """VNC-hard, Eq. (2): exact edge/ball intersections, normalized by the weighted intersected length.
 
     ``H(v_k, r) = sum_j alpha_j delta_j w_kj l_j / (2 sum_j w_kj l_j)`` over the edges crossing the ball of
@@ -573,15 +687,26 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
     The normal weights the edges' area-weighted normals by ``w_kj l_j``. Not differentiable (use VNC-soft).
 
     Args:
-        mesh: the mesh.
-        tau: ball radius (mesh units): a scalar or a (V,) array.
+        mesh: a :class:`~vnc_warp.Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path.
+        tau: ball radius (mesh units): a scalar or one value per vertex (of the input).
         kappa: radius-to-sigma ratio, or None for the unweighted operator.
-        device: Warp device.
+        device: Warp device (default: a tensor's device, else the preferred device).
         strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_soft`).
 
     Returns:
-        ``(H, n)``: (V,) float32 and (V,) vec3, on ``device``.
+        ``(H, n)`` per vertex, as for :func:`vnc_soft`: Warp arrays for a Mesh, NumPy arrays (one row per input
+        vertex) for a trimesh, pair or path, torch tensors for tensors.
     """
+    src = mesh_input(mesh)
+    tau = src.to_mesh_vertices(tau, "tau")
+    H, n = _vnc_hard(src.mesh, tau, kappa=kappa, device=device if device is not None else src.device,
+                     strategy=strategy)
+    _warn_if_degenerate("vnc_hard", src, tau, kappa, n, soft=False)
+    return src.per_vertex(H), src.per_vertex(n)
+
+
+def _vnc_hard(mesh: Mesh, tau, *, kappa: float | None, device, strategy: str) -> tuple[wp.array, wp.array]:
+    """:func:`vnc_hard` on a :class:`Mesh`: Warp arrays per mesh vertex."""
     device = get_device(device)
     if kappa is not None and not (kappa > 0.0):
         raise ValueError(f"kappa must be positive or None, got {kappa}")
@@ -596,22 +721,34 @@ def vnc_hard(mesh: Mesh, tau, *, kappa: float | None = 6.0, device=None,
     return outputs[3], outputs[4]
 
 
-def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, strategy: str = "auto") -> wp.array:
+def integrated_mean_curvature(mesh, radius, points=None, *, device=None, strategy: str = "auto"):
     """Eq. (1): integrated discrete mean curvature in balls, ``1/2 sum_j alpha_j delta_j l_j``.
 
     The normal-cycle measure of Cohen-Steiner and Morvan, equal to trimesh's
     ``curvature.discrete_mean_curvature_measure(mesh, points, radius)``.
 
     Args:
-        mesh: the mesh.
-        radius: ball radius (mesh units), scalar or (P,) per point.
-        points: (P, 3) ball centres; defaults to the vertices.
-        device: Warp device.
+        mesh: a :class:`~vnc_warp.Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path.
+        radius: ball radius (mesh units), a scalar, or one value per point (per input vertex without ``points``).
+        points: (P, 3) ball centres (NumPy, torch or a list); defaults to the vertices.
+        device: Warp device (default: a tensor's device, else the preferred device).
         strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_soft`).
 
     Returns:
-        (P,) float32 on ``device``, in mesh units (length x angle).
+        In mesh units (length x angle): per vertex as for :func:`vnc_soft` (a (V,) float32 Warp array for a Mesh,
+        NumPy for a trimesh, pair or path, torch for tensors), or one value per point in the same kind.
     """
+    src = mesh_input(mesh)
+    dev = device if device is not None else src.device
+    if points is None:
+        return src.per_vertex(_integrated(src.mesh, src.to_mesh_vertices(radius, "radius"), None, device=dev,
+                                          strategy=strategy))
+    out = _integrated(src.mesh, radius, points, device=dev, strategy=strategy)
+    return src.per_point(out)
+
+
+def _integrated(mesh: Mesh, radius, points, *, device, strategy: str) -> wp.array:
+    """:func:`integrated_mean_curvature` on a :class:`Mesh`: a (V,) or (P,) Warp array."""
     device = get_device(device)
     t = _host_scalar(radius, "radius")
     if points is None and t is not None and strategy != "bvh":
@@ -625,12 +762,16 @@ def integrated_mean_curvature(mesh: Mesh, radius, points=None, *, device=None, s
     if points is None:
         pts = mesh.vertices
     else:
-        pts = np.asarray(points, dtype=np.float64)
+        pts = np.asarray(_host_values(points), dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must be (P, 3), got {pts.shape}")
+        pts = pts - mesh.origin  # the kernels run on coordinates relative to the mesh's centre
         if not np.isfinite(pts).all():
             raise ValueError("points contain NaN or infinite coordinates")
     P = pts.shape[0]
+    if P == 0:
+        _per_point(radius, 0, device, "radius")
+        return wp.empty(0, dtype=wp.float32, device=device)
     points_wp = _mesh_vertices(mesh, device) if points is None else wp.array(
         np.asarray(pts, dtype=np.float32), dtype=wp.vec3, device=device)
     r = _per_point(radius, P, device, "radius")

@@ -1,49 +1,141 @@
-"""Small line and scatter plots for the paper's charts (Figs. 6, 8a, 11), with or without matplotlib.
+"""Plots for the paper's charts (Figs. 6, 8a, 11), drawn with matplotlib, ready for a paper.
 
-Both functions draw with matplotlib (Agg, no pyplot state) when it is importable and otherwise with
-Pillow alone: axes, numbered ticks, axis labels, title, legend, colours per series, dashed stage
-boundaries, shaded spreads and per-point colours. ``backend="pil"`` forces the Pillow path.
-Both return the picture as an ``(H, W, 3) uint8`` array and can write it as PNG.
+One style for every plot (:data:`STYLE`): STIX for text and mathematics alike (``$\\tau$``, ``$\\hat{H}$``,
+``$t$`` set in the same face as the words around them), small print sizes, the fonts embedded in the PDF as
+TrueType. Every plot is written twice, as a PNG (to look at, :data:`DPI` pixels per inch) and as a vector PDF (or
+SVG) beside it for the paper. Figures are made on matplotlib's Agg canvas, never through ``pyplot``, so nothing
+global changes and no window opens.
+
+Meshes are not plots: they are ray-cast by :mod:`vnc_warp.render` and tiled by :mod:`vnc_warp.figures`.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .render import _as_rgb8, _font, _host, _nice_ticks, _text_size, _tick_format, colorbar, colormap, save_png
+__all__ = ["line_plot", "scatter_plot", "figure", "save_figure", "style", "log_axis", "rgb", "SERIES_COLORS", "STYLE",
+           "DPI"]
 
-__all__ = ["line_plot", "scatter_plot", "SERIES_COLORS"]
+#: Pixels per inch of the PNGs; a plot of ``size=(w, h)`` pixels is ``w / DPI`` by ``h / DPI`` inches.
+DPI = 200
 
 #: Series colours in order (matplotlib's "tab10" cycle), RGB uint8.
 SERIES_COLORS = [
     (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
     (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
 ]
-_VLINE_RGB = (110, 110, 110)
-_GRID_RGB = (228, 228, 228)
+
+#: matplotlib settings of every plot: one face (STIX) for text and mathematics, print sizes, embedded fonts.
+STYLE = {
+    "font.family": "STIXGeneral",
+    "mathtext.fontset": "stix",
+    "font.size": 9.0,
+    "axes.titlesize": 9.0,
+    "axes.labelsize": 9.0,
+    "legend.fontsize": 8.0,
+    "xtick.labelsize": 8.0,
+    "ytick.labelsize": 8.0,
+    "figure.titlesize": 10.0,
+    "axes.linewidth": 0.6,
+    "lines.linewidth": 1.4,
+    "xtick.major.width": 0.6,
+    "ytick.major.width": 0.6,
+    "axes.grid": True,
+    "grid.color": "#e4e4e4",
+    "grid.linewidth": 0.5,
+    "axes.axisbelow": True,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "legend.frameon": False,
+    "pdf.fonttype": 42,
+    "svg.fonttype": "none",
+    "savefig.dpi": DPI,
+    "figure.dpi": DPI,
+}
+
+_VECTOR = (None, "pdf", "svg")
 
 
-def _use_matplotlib(backend: str) -> bool:
-    if backend not in ("auto", "matplotlib", "pil"):
-        raise ValueError(f"backend must be 'auto', 'matplotlib' or 'pil', got {backend!r}")
-    if backend == "pil":
-        return False
-    if importlib.util.find_spec("matplotlib") is None:
-        if backend == "matplotlib":
-            raise ImportError("backend='matplotlib' needs matplotlib (pip install 'vnc-warp[plot]')")
-        return False
-    return True
+@contextmanager
+def style():
+    """Draw inside ``with style():`` to get :data:`STYLE` (a figure must also be saved inside it: mathematics is
+    typeset when it is drawn)."""
+    import matplotlib
+
+    with matplotlib.rc_context(STYLE):
+        yield
 
 
-def _check_size(size: Sequence[int]) -> tuple[int, int]:
-    w, h = (int(s) for s in size)
+def figure(size: tuple[float, float], *, nrows: int = 1, ncols: int = 1, **subplots):
+    """A matplotlib ``Figure`` on the Agg canvas (no pyplot state) of ``size`` pixels at :data:`DPI`, and its
+    axes (``Figure.subplots(nrows, ncols, **subplots)``). Call inside :func:`style`."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    w, h = _check_size(size)
+    fig = Figure(figsize=(w / DPI, h / DPI), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, squeeze=True, **subplots)
+
+
+def save_figure(fig, path: str | os.PathLike | None = None, *, vector: str | None = "pdf") -> np.ndarray:
+    """Draw ``fig``; write it to ``path`` as PNG and, with ``vector``, as a PDF or SVG beside it (the same name
+    with that suffix). Call inside :func:`style`.
+
+    Returns:
+        The picture, ``(H, W, 3) uint8``, as the PNG holds it.
+    """
+    if vector not in _VECTOR:
+        raise ValueError(f"vector must be 'pdf', 'svg' or None, got {vector!r}")
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy()
+    if path is not None:
+        png = Path(path)
+        if png.suffix.lower() not in (".png", ""):
+            raise ValueError(f"path names the PNG (the {vector or 'vector'} copy goes beside it), got {png}")
+        from PIL import Image
+
+        png = png.with_suffix(".png")
+        png.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(img).save(png, dpi=(DPI, DPI))  # the pixels returned, not a second layout
+        if vector is not None:
+            fig.savefig(png.with_suffix("." + vector))
+    return img
+
+
+def log_axis(ax, which: str = "x") -> None:
+    """A logarithmic x or y axis labelled with plain numbers (1, 2, 5, 10, ...; not ``2 x 10^0``), no minor
+    labels."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis = ax.xaxis if which == "x" else ax.yaxis
+    (ax.set_xscale if which == "x" else ax.set_yscale)("log")
+    lo, hi = (ax.get_xlim() if which == "x" else ax.get_ylim())
+    # few decades: 1-2-5 steps, so that a short axis still has several labels
+    subs = (1.0, 2.0, 5.0) if hi / max(lo, 1e-300) < 1e3 else (1.0,)
+    axis.set_major_locator(LogLocator(base=10.0, subs=subs))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def _check_size(size: Sequence[float]) -> tuple[int, int]:
+    w, h = (int(round(s)) for s in size)
     if w < 120 or h < 100:
         raise ValueError(f"plot size must be at least (120, 100) pixels, got {tuple(size)}")
     return w, h
+
+
+def _host(a: Any) -> np.ndarray:
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    elif hasattr(a, "numpy") and not isinstance(a, np.ndarray):
+        a = a.numpy()
+    return np.asarray(a, dtype=np.float64)
 
 
 def _series_arrays(series: Mapping[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
@@ -54,177 +146,18 @@ def _series_arrays(series: Mapping[str, Any]) -> list[tuple[str, np.ndarray, np.
     for name, data in series.items():
         if len(data) not in (2, 3):
             raise ValueError(f"line_plot: series {name!r} must be (x, y) or (x, y, spread)")
-        arrays = [np.asarray(_host(d), dtype=np.float64).reshape(-1) for d in data]
+        arrays = [_host(d).reshape(-1) for d in data]
         if any(a.shape != arrays[0].shape for a in arrays):
             raise ValueError(f"line_plot: series {name!r} has arrays of lengths {[a.size for a in arrays]}")
         out.append((str(name), arrays[0], arrays[1], arrays[2] if len(arrays) == 3 else None))
+    if not any(np.isfinite(x).any() and np.isfinite(y).any() for _, x, y, _ in out):
+        raise ValueError("line_plot: no finite data to draw")
     return out
 
 
-def _limits(values: list[np.ndarray], pad: float) -> tuple[float, float]:
-    """Finite range of the values, widened by ``pad`` of its span (or by 0.5 / 5 % when it is a point)."""
-    v = np.concatenate([a[np.isfinite(a)] for a in values]) if values else np.zeros(0)
-    if v.size == 0:
-        raise ValueError("plot: no finite data to draw")
-    lo, hi = float(v.min()), float(v.max())
-    if hi == lo:
-        d = 0.05 * abs(lo) if lo != 0.0 else 0.5
-        return lo - d, hi + d
-    d = (hi - lo) * pad
-    return lo - d, hi + d
-
-
-class _Axes:
-    """A Pillow canvas with one set of axes: data-to-pixel mapping and the frame, ticks and labels.
-
-    Everything is drawn ``k`` times larger and shrunk at the end (:meth:`rgb`), which anti-aliases
-    lines, markers and text; lengths given to the methods are in output pixels.
-    """
-
-    def __init__(self, size, xlim, ylim, *, title, xlabel, ylabel, right_margin=20, k=2):
-        from PIL import Image, ImageDraw
-
-        self.size, self.k = size, k
-        self.w, self.h = size[0] * k, size[1] * k
-        self.image = Image.new("RGBA", (self.w, self.h), (255, 255, 255, 255))
-        self.draw = ImageDraw.Draw(self.image)
-        base = max(10, round(min(size) / 38))
-        self.font, self.label_font, self.title_font = _font(base * k), _font((base + 2) * k), _font((base + 4) * k)
-        self.xlim, self.ylim = xlim, ylim
-        self.xticks = _nice_ticks(*xlim, count=max(3, size[0] // 120))
-        self.yticks = _nice_ticks(*ylim, count=max(3, size[1] // 80))
-        self.xfmt, self.yfmt = _tick_format(self.xticks), _tick_format(self.yticks)
-        _, th = _text_size(self.draw, "0.9", self.font)
-        ytw = max(_text_size(self.draw, self.yfmt(t), self.font)[0] for t in self.yticks)
-        _, lh = _text_size(self.draw, "Xg", self.label_font)
-        self.left = 14 * k + ytw + 8 * k + (lh + 8 * k if ylabel else 0)
-        self.bottom = self.h - (12 * k + th + 8 * k + (lh + 10 * k if xlabel else 0))
-        self.top = 12 * k + (_text_size(self.draw, "Xg", self.title_font)[1] + 12 * k if title else 0)
-        self.right = self.w - right_margin * k
-        if self.right - self.left < 20 * k or self.bottom - self.top < 20 * k:
-            raise ValueError(f"plot size {size} leaves no room for the axes")
-        self.title, self.xlabel, self.ylabel = title, xlabel, ylabel
-
-    def px(self, x):
-        x0, x1 = self.xlim
-        return self.left + (np.asarray(x, np.float64) - x0) / (x1 - x0) * (self.right - self.left)
-
-    def py(self, y):
-        y0, y1 = self.ylim
-        return self.bottom - (np.asarray(y, np.float64) - y0) / (y1 - y0) * (self.bottom - self.top)
-
-    def grid(self):
-        for t in self.xticks:
-            x = float(self.px(t))
-            self.draw.line([(x, self.top), (x, self.bottom)], fill=_GRID_RGB, width=self.k)
-        for t in self.yticks:
-            y = float(self.py(t))
-            self.draw.line([(self.left, y), (self.right, y)], fill=_GRID_RGB, width=self.k)
-
-    def fill_alpha(self, polygon, rgb, alpha=0.25):
-        """A translucent polygon (composited, so overlapping spreads stay visible)."""
-        from PIL import Image, ImageDraw
-
-        layer = Image.new("RGBA", self.image.size, (0, 0, 0, 0))
-        ImageDraw.Draw(layer).polygon(polygon, fill=tuple(rgb) + (int(255 * alpha),))
-        self.image.alpha_composite(layer)
-        self.draw = ImageDraw.Draw(self.image)
-
-    def dashed_vline(self, x, rgb=_VLINE_RGB, dash=7, gap=5):
-        xp = float(self.px(x))
-        y = float(self.top)
-        while y < self.bottom:
-            self.draw.line([(xp, y), (xp, min(y + dash * self.k, self.bottom))], fill=rgb, width=self.k)
-            y += (dash + gap) * self.k
-
-    def polyline(self, x, y, rgb, width=2):
-        """A line through the points, broken at non-finite values; isolated points become dots."""
-        width *= self.k
-        ok = np.isfinite(x) & np.isfinite(y)
-        xs, ys = self.px(np.where(ok, x, 0.0)), self.py(np.where(ok, y, 0.0))
-        run = []
-        for k in range(len(ok) + 1):
-            if k < len(ok) and ok[k]:
-                run.append((float(xs[k]), float(ys[k])))
-                continue
-            if len(run) > 1:
-                self.draw.line(run, fill=rgb, width=width, joint="curve")
-            elif len(run) == 1:
-                cx, cy = run[0]
-                self.draw.ellipse([cx - width, cy - width, cx + width, cy + width], fill=rgb)
-            run = []
-
-    def frame(self):
-        """Axes box, ticks with numbers, axis labels and title (drawn last, over the data)."""
-        from PIL import Image, ImageDraw
-
-        d, k, black = self.draw, self.k, (0, 0, 0)
-        d.rectangle([self.left, self.top, self.right, self.bottom], outline=black, width=k)
-        for t in self.xticks:
-            x = float(self.px(t))
-            d.line([(x, self.bottom), (x, self.bottom + 5 * k)], fill=black, width=k)
-            d.text((x, self.bottom + 8 * k), self.xfmt(t), fill=black, font=self.font, anchor="mt")
-        for t in self.yticks:
-            y = float(self.py(t))
-            d.line([(self.left - 5 * k, y), (self.left, y)], fill=black, width=k)
-            d.text((self.left - 8 * k, y), self.yfmt(t), fill=black, font=self.font, anchor="rm")
-        if self.title:
-            d.text((self.w / 2, 8 * k), self.title, fill=black, font=self.title_font, anchor="mt")
-        if self.xlabel:
-            d.text(((self.left + self.right) / 2, self.h - 8 * k), self.xlabel, fill=black, font=self.label_font,
-                   anchor="mb")
-        if self.ylabel:
-            tw, th = _text_size(d, self.ylabel, self.label_font)
-            label = Image.new("RGBA", (tw + 4 * k, th + 8 * k), (255, 255, 255, 0))
-            ImageDraw.Draw(label).text((2 * k, 2 * k), self.ylabel, fill=black + (255,), font=self.label_font,
-                                       anchor="lt")
-            label = label.rotate(90, expand=True)
-            y0 = int((self.top + self.bottom) / 2 - label.height / 2)
-            self.image.alpha_composite(label, (6 * k, max(y0, 0)))
-
-    def legend(self, entries: list[tuple[str, tuple[int, int, int]]]):
-        """Names with line samples in a framed box at the top right inside the axes."""
-        if not entries:
-            return
-        d, k = self.draw, self.k
-        sizes = [_text_size(d, name, self.font) for name, _ in entries]
-        row = max(h for _, h in sizes) + 8 * k
-        box_w = 44 * k + max(w for w, _ in sizes) + 10 * k
-        box_h = row * len(entries) + 8 * k
-        x0, y0 = self.right - box_w - 8 * k, self.top + 8 * k
-        d.rectangle([x0, y0, x0 + box_w, y0 + box_h], fill=(255, 255, 255), outline=(160, 160, 160), width=k)
-        for i, (name, rgb) in enumerate(entries):
-            yc = y0 + 4 * k + row * i + row / 2
-            d.line([(x0 + 10 * k, yc), (x0 + 34 * k, yc)], fill=rgb, width=3 * k)
-            d.text((x0 + 42 * k, yc), name, fill=(0, 0, 0), font=self.font, anchor="lm")
-
-    def rgb(self) -> np.ndarray:
-        """The picture at the requested size, (H, W, 3) uint8."""
-        from PIL import Image
-
-        return np.asarray(self.image.convert("RGB").resize(self.size, Image.Resampling.LANCZOS))
-
-
-def _finish(img: np.ndarray, path: str | os.PathLike | None) -> np.ndarray:
-    img = _as_rgb8(img, "plot")
-    if path is not None:
-        save_png(path, img)
-    return img
-
-
-def _mpl_figure(size):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(size[0] / 100.0, size[1] / 100.0), dpi=100)
-    canvas = FigureCanvasAgg(fig)
-    return fig, canvas
-
-
-def _mpl_pixels(fig, canvas) -> np.ndarray:
-    fig.tight_layout()
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
+def rgb(k: int) -> tuple[float, float, float]:
+    """Series colour ``k`` (cycling) as matplotlib takes it."""
+    return tuple(c / 255.0 for c in SERIES_COLORS[k % len(SERIES_COLORS)])
 
 
 def line_plot(
@@ -234,68 +167,48 @@ def line_plot(
     xlabel: str = "",
     ylabel: str = "",
     vlines: Sequence[float] | None = None,
+    logx: bool = False,
+    logy: bool = False,
     path: str | os.PathLike | None = None,
-    size: tuple[int, int] = (800, 500),
-    backend: str = "auto",
+    vector: str | None = "pdf",
+    size: tuple[int, int] = (1000, 620),
 ) -> np.ndarray:
     """Lines for several named series, e.g. mean VNC against scale (Fig. 6) or against flow step (Fig. 8a).
 
     Args:
-        series: name -> ``(x, y)`` or ``(x, y, spread)``, each (N,) array-like (NumPy, Warp or torch);
-            a spread is drawn as a translucent band ``y +- spread``. Non-finite points break the line.
-            Series with an empty name stay out of the legend.
-        title, xlabel, ylabel: texts.
+        series: name -> ``(x, y)`` or ``(x, y, spread)``, each (N,) array-like (NumPy, Warp or torch); a spread is a
+            translucent band ``y +- spread``. Non-finite points break the line. Names may hold mathematics
+            (``"$\\hat{H}$"``); series with an empty name stay out of the legend.
+        title, xlabel, ylabel: texts (mathematics in ``$...$``).
         vlines: x positions of dashed vertical markers (e.g. stage boundaries).
-        path: also write the picture there as PNG.
-        size: ``(width, height)`` in pixels.
-        backend: ``"auto"`` (matplotlib if importable, else Pillow), ``"matplotlib"`` or ``"pil"``.
+        logx, logy: logarithmic axes.
+        path: write the PNG there, and the ``vector`` copy beside it.
+        vector: "pdf", "svg" or None.
+        size: ``(width, height)`` of the PNG in pixels (:data:`DPI` per inch).
 
     Returns:
         ``(height, width, 3) uint8``.
 
     Raises:
-        ValueError: no series, mismatched lengths, no finite data, a bad size or backend.
-        ImportError: ``backend="matplotlib"`` without matplotlib.
+        ValueError: no series, mismatched lengths, no finite data, a bad size or vector format.
     """
-    w, h = _check_size(size)
     data = _series_arrays(series)
-    vl = [float(v) for v in (vlines or [])]
-    if _use_matplotlib(backend):
-        fig, canvas = _mpl_figure((w, h))
-        ax = fig.add_subplot()
+    with style():
+        fig, ax = figure(size)
         for k, (name, x, y, spread) in enumerate(data):
-            rgb = np.asarray(SERIES_COLORS[k % len(SERIES_COLORS)]) / 255.0
-            ax.plot(x, y, color=rgb, lw=2, label=name or "_nolegend_")
+            ax.plot(x, y, color=rgb(k), label=name or "_nolegend_")
             if spread is not None:
-                ax.fill_between(x, y - spread, y + spread, color=rgb, alpha=0.25, lw=0)
-        for v in vl:
-            ax.axvline(v, color=np.asarray(_VLINE_RGB) / 255.0, ls="--", lw=1)
+                ax.fill_between(x, y - spread, y + spread, color=rgb(k), alpha=0.22, lw=0)
+        for v in vlines or []:
+            ax.axvline(float(v), color="0.45", ls=(0, (4, 3)), lw=0.7)
         ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-        ax.grid(True, color=np.asarray(_GRID_RGB) / 255.0)
+        if logx:
+            log_axis(ax, "x")
+        if logy:
+            log_axis(ax, "y")
         if any(name for name, *_ in data):
-            ax.legend(loc="upper right")
-        return _finish(_mpl_pixels(fig, canvas), path)
-
-    xs = [x for _, x, _, _ in data] + ([np.asarray(vl)] if vl else [])
-    ys = []
-    for _, _, y, spread in data:
-        ys += [y] if spread is None else [y - spread, y + spread]
-    ax = _Axes((w, h), _limits(xs, 0.02), _limits(ys, 0.06), title=title, xlabel=xlabel, ylabel=ylabel)
-    ax.grid()
-    for k, (_, x, y, spread) in enumerate(data):
-        if spread is not None:
-            ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(spread)
-            if ok.sum() > 1:
-                upper = list(zip(ax.px(x[ok]).tolist(), ax.py((y + spread)[ok]).tolist()))
-                lower = list(zip(ax.px(x[ok]).tolist(), ax.py((y - spread)[ok]).tolist()))
-                ax.fill_alpha(upper + lower[::-1], SERIES_COLORS[k % len(SERIES_COLORS)])
-    for v in vl:
-        ax.dashed_vline(v)
-    for k, (_, x, y, _) in enumerate(data):
-        ax.polyline(x, y, SERIES_COLORS[k % len(SERIES_COLORS)])
-    ax.frame()
-    ax.legend([(name, SERIES_COLORS[k % len(SERIES_COLORS)]) for k, (name, *_) in enumerate(data) if name])
-    return _finish(ax.rgb(), path)
+            ax.legend(loc="best")
+        return save_figure(fig, path, vector=vector)
 
 
 def scatter_plot(
@@ -310,75 +223,59 @@ def scatter_plot(
     title: str = "",
     xlabel: str = "",
     ylabel: str = "",
-    marker_size: float = 6.0,
+    marker_size: float = 12.0,
     path: str | os.PathLike | None = None,
-    size: tuple[int, int] = (800, 500),
-    backend: str = "auto",
+    vector: str | None = "pdf",
+    size: tuple[int, int] = (1000, 620),
 ) -> np.ndarray:
     """Points, optionally coloured by a scalar with a colour bar, e.g. latent codes coloured by ``t`` (Fig. 11).
 
+    A stable entry point for any scatter plot of the package (``vnc_warp.training`` included).
+
     Args:
         x, y: (N,) coordinates; points with a non-finite coordinate are skipped.
-        c: (N,) scalar per point drawn through :func:`vnc_warp.render.colormap`, or ``None`` for one colour.
-        cmap, vmin, vmax: colour map and its limits for ``c`` (default the finite range).
-        clabel: colour bar caption.
-        title, xlabel, ylabel: texts.
-        marker_size: marker diameter in pixels.
-        path: also write the picture there as PNG.
-        size: ``(width, height)`` in pixels.
-        backend: ``"auto"``, ``"matplotlib"`` or ``"pil"`` (see :func:`line_plot`).
+        c: (N,) scalar per point (colour map ``cmap`` from ``vmin`` to ``vmax``, default its finite range), or
+            None for one colour.
+        clabel: colour bar caption (e.g. ``"$t$"``).
+        title, xlabel, ylabel: texts (mathematics in ``$...$``).
+        marker_size: marker area in points squared (matplotlib's ``s``).
+        path, vector, size: as for :func:`line_plot`.
 
     Returns:
         ``(height, width, 3) uint8``.
 
     Raises:
-        ValueError: mismatched lengths, no finite point, a bad size, backend or cmap.
-        ImportError: ``backend="matplotlib"`` without matplotlib.
+        ValueError: mismatched lengths, a bad size, colour map or vector format.
     """
-    w, h = _check_size(size)
-    xa = np.asarray(_host(x), dtype=np.float64).reshape(-1)
-    ya = np.asarray(_host(y), dtype=np.float64).reshape(-1)
-    ca = None if c is None else np.asarray(_host(c), dtype=np.float64).reshape(-1)
+    xa, ya = _host(x).reshape(-1), _host(y).reshape(-1)
+    ca = None if c is None else _host(c).reshape(-1)
     if ya.shape != xa.shape or (ca is not None and ca.shape != xa.shape):
         raise ValueError(f"scatter_plot: x, y{', c' if ca is not None else ''} must have one length, got "
                          f"{xa.size}, {ya.size}" + (f", {ca.size}" if ca is not None else ""))
-    colors = None if ca is None else colormap(ca, cmap, vmin, vmax)
-    if _use_matplotlib(backend):
-        fig, canvas = _mpl_figure((w, h))
-        ax = fig.add_subplot()
-        s = (marker_size * 0.72) ** 2
-        if ca is None:
-            ax.scatter(xa, ya, s=s, color=np.asarray(SERIES_COLORS[0]) / 255.0, lw=0)
-        else:
-            finite = ca[np.isfinite(ca)]
-            lo = vmin if vmin is not None else (finite.min() if finite.size else 0.0)
-            hi = vmax if vmax is not None else (finite.max() if finite.size else 1.0)
-            sc = ax.scatter(xa, ya, s=s, c=ca, cmap=cmap, vmin=lo, vmax=hi, lw=0)
-            fig.colorbar(sc, ax=ax, label=clabel)
+    with style():
+        fig, ax = figure(size)
+        _scatter(fig, ax, xa, ya, ca, cmap=cmap, vmin=vmin, vmax=vmax, clabel=clabel, marker_size=marker_size)
         ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-        ax.grid(True, color=np.asarray(_GRID_RGB) / 255.0)
-        ax.set_axisbelow(True)
-        return _finish(_mpl_pixels(fig, canvas), path)
+        return save_figure(fig, path, vector=vector)
 
-    bar_w = max(70, w // 9) if ca is not None else 0
-    ok = np.isfinite(xa) & np.isfinite(ya)
-    ax = _Axes((w, h), _limits([xa[ok]], 0.04), _limits([ya[ok]], 0.04), title=title, xlabel=xlabel, ylabel=ylabel,
-               right_margin=20 + bar_w)
-    ax.grid()
-    r = max(marker_size / 2.0, 0.5) * ax.k
-    px, py = ax.px(xa), ax.py(ya)
-    for k in np.nonzero(ok)[0]:
-        rgb = SERIES_COLORS[0] if colors is None else tuple(int(round(v * 255)) for v in colors[k])
-        ax.draw.ellipse([px[k] - r, py[k] - r, px[k] + r, py[k] + r], fill=rgb)
-    ax.frame()
-    if ca is not None:
-        from PIL import Image
 
-        finite = ca[np.isfinite(ca)]
-        lo = float(vmin) if vmin is not None else (float(finite.min()) if finite.size else 0.0)
-        hi = float(vmax) if vmax is not None else (float(finite.max()) if finite.size else 1.0)
-        if hi <= lo:
-            hi = lo + 1.0
-        bar = colorbar(cmap, lo, hi, label=clabel, width=(bar_w - 10) * ax.k, height=max(ax.bottom - ax.top, 40))
-        ax.image.paste(Image.fromarray(bar).convert("RGBA"), (ax.right + 16 * ax.k, ax.top))
-    return _finish(ax.rgb(), path)
+def _scatter(fig, ax, x, y, c, *, cmap: str, vmin, vmax, clabel: str, marker_size: float, colorbar: bool = True):
+    """Points on ``ax``: coloured by ``c`` (sorted so that high values are drawn last) with a colour bar, or in
+    series colour 0. Returns the mappable (or None)."""
+    import matplotlib
+
+    if cmap not in matplotlib.colormaps:
+        raise ValueError(f"unknown colour map {cmap!r}")
+    ok = np.isfinite(x) & np.isfinite(y)
+    if c is None:
+        ax.scatter(x[ok], y[ok], s=marker_size, color=rgb(0), lw=0)
+        return None
+    finite = c[np.isfinite(c)]
+    lo = vmin if vmin is not None else (float(finite.min()) if finite.size else 0.0)
+    hi = vmax if vmax is not None else (float(finite.max()) if finite.size else 1.0)
+    order = np.argsort(np.where(np.isfinite(c), c, -np.inf)[ok], kind="stable")
+    sc = ax.scatter(x[ok][order], y[ok][order], s=marker_size, c=c[ok][order], cmap=cmap, vmin=lo,
+                    vmax=hi if hi > lo else lo + 1.0, lw=0)
+    if colorbar:
+        fig.colorbar(sc, ax=ax, label=clabel)
+    return sc

@@ -57,7 +57,7 @@ from vnc_warp._device import get_device
 from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _k
 from vnc_warp.mesh import EdgeTopology, Mesh, MeshError, load_mesh
-from vnc_warp.sdf import choose_band_factor, inward_distances, sample_grid, sign_flag, surface_samples, warp_mesh
+from vnc_warp.sdf import choose_band_factor, inward_distances, sample_grid, sign_flag, surface_samples
 
 __all__ = ["sdf_remesh", "validate_surface", "RemeshReport", "RemeshWarning"]
 
@@ -841,8 +841,9 @@ class _HalfEdgeSurface:
         wp.launch(_kr.scale_about, dim=self.num_vertices, inputs=[self.x, wp.vec3(*centre), float(factor)],
                   device=self.device)
 
-    def to_mesh(self, name: str) -> Mesh:
-        """The surface as a :class:`~vnc_warp.mesh.Mesh`, its edge topology built on the device. Each vertex's
+    def to_mesh(self, name: str, origin: np.ndarray) -> Mesh:
+        """The surface as a :class:`~vnc_warp.mesh.Mesh` whose :attr:`~vnc_warp.mesh.Mesh.origin` is ``origin``
+        (the frame the device positions are relative to), its edge topology built on the device. Each vertex's
         outgoing half-edge is reset to the one :meth:`build` picks (the last), so that a run resumed from the
         saved mesh regularizes exactly as the run that wrote it."""
         dev = self.device
@@ -860,7 +861,11 @@ class _HalfEdgeSurface:
         topo = EdgeTopology(edges.numpy().reshape(-1, 2).copy(), interior.numpy().reshape(-1, 4).copy(),
                             np.zeros((0, 2), np.int32))
         # copies: on the CPU device .numpy() is a view, and the state changes at the next call
-        return Mesh(self.x.numpy().copy(), self.tri.numpy().reshape(-1, 3).copy(), topo, name)
+        local = self.x.numpy().copy()
+        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
+        mesh = Mesh(vertices, self.tri.numpy().reshape(-1, 3).copy(), topo, name, origin=np.asarray(origin, np.float64))
+        mesh._cache["local_vertices"] = (vertices, local)
+        return mesh
 
     def regularize(self, surface: wp.Mesh, iterations: int, area: float, *, settle: bool = False) -> int:
         """``iterations`` rounds of relocations, flips and relaxation onto ``surface`` (a ``wp.Mesh``
@@ -985,12 +990,18 @@ class _Remesher:
         self.relax_iterations = int(relax_iterations)
         self.allow_changes, self.warn = allow_changes, warn
         self.state: _HalfEdgeSurface | None = None
+        # every device position is relative to this point (float64), so that a mesh far from the coordinate
+        # origin keeps float32 precision (as Mesh.local_vertices does for the operators)
+        self.origin = np.zeros(3)
         self.spacing = 0.0
         self.name = "mesh"
 
     def adopt(self, mesh: Mesh, spacing: float, name: str) -> None:
-        """Continue from ``mesh`` (a result of an earlier remesher with these settings, read back from disk)."""
-        self.state = _HalfEdgeSurface.build(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64), self.device)
+        """Continue from ``mesh`` (a result of an earlier remesher with these settings, read back from disk), in its
+        frame: positions given later are relative to ``mesh.origin``."""
+        self.origin = np.asarray(mesh.origin, np.float64)
+        self.state = _HalfEdgeSurface.build(mesh.local_vertices.astype(np.float64), mesh.faces.astype(np.int64),
+                                            self.device)
         if self.state is None:
             raise MeshError(f"sdf_remesh: {name}: the stage to continue from is not a closed manifold surface")
         self.spacing, self.name = float(spacing), name
@@ -1020,23 +1031,21 @@ class _Remesher:
                 raise ValueError(f"sdf_remesh: {src.name} is not a closed manifold surface; the normal sign is only "
                                  "right for watertight meshes, use sign='winding'")
             f = src.f
-            if src.mesh is None and np.einsum("ij,ij->i", src.v[f[:, 0]] - src.v.mean(0),
-                                              np.cross(src.v[f[:, 1]] - src.v[f[:, 0]],
-                                                       src.v[f[:, 2]] - src.v[f[:, 0]])).sum() < 0.0:
+            self.origin = 0.5 * (src.v.min(0) + src.v.max(0))
+            v = src.v - self.origin
+            if src.mesh is None and np.einsum("ij,ij->i", v[f[:, 0]] - v.mean(0),
+                                              np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])).sum() < 0.0:
                 f = f[:, ::-1]  # an open surface may be wound either way: inward distances need it outward
-            x = wp.array(src.v, dtype=wp.vec3, device=dev)
+            x = wp.array(v, dtype=wp.vec3, device=dev)
             tri = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
-            if src.mesh is not None:
-                wm = warp_mesh(src.mesh, dev, winding=bool(self.use_winding))
-            else:
-                wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(self.use_winding))
-            area_in = float(_area_and_centroid(src.v, src.f)[0])
+            wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(self.use_winding))
+            area_in = float(_area_and_centroid(v, src.f)[0])
             report = RemeshReport("surface", 0.0, src.f.shape[0], euler_in=src.euler, components_in=src.components,
                                   repairs=dict(src.repairs), seconds=seconds)
             why = ("the input is not a valid closed surface" if src.mesh is None else
                    "the face count changes" if target != src.f.shape[0] else
                    "no regularization asked for" if not self.relax_iterations else None)
-            st = _HalfEdgeSurface.build(src.v, src.f, dev) if why is None else None
+            st = _HalfEdgeSurface.build(v, src.f, dev) if why is None else None
             expected = src.euler + src.loops if src.euler is not None and src.components == 1 else None
             clock.lap("input")
         lo, hi = _device_bounds(x)
@@ -1064,7 +1073,7 @@ class _Remesher:
                 report.area_scale = float(np.sqrt(area_in / area))
             problems = st.problems(tiny)
             if not problems:
-                out = st.to_mesh(f"{self.name}:remeshed")
+                out = st.to_mesh(f"{self.name}:remeshed", self.origin)
                 clock.lap("checks")
                 self.state, self.spacing = st, h
                 report.faces, report.vertices, report.euler = out.num_faces, out.num_vertices, st.euler
@@ -1094,7 +1103,7 @@ class _Remesher:
             self._own_fixed_point(st, area)
             now, _, centre, _, _ = st.measures()
             st.scale_about(centre, np.sqrt(area / now))
-            out = st.to_mesh(out.name)
+            out = st.to_mesh(out.name, self.origin)
             problems = st.problems(tiny)
             if problems:
                 raise MeshError(f"sdf_remesh: {self.name}: re-tessellating the result left " + "; ".join(problems))
@@ -1224,7 +1233,7 @@ class _Remesher:
             now, _, centre, _, _ = st.measures()
             st.scale_about(centre, np.sqrt(area / now))
             report.area_scale = float(np.sqrt(area / now))
-        out = st.to_mesh(f"{self.name}:remeshed")
+        out = st.to_mesh(f"{self.name}:remeshed", self.origin)
         # checked as stored (float32), so rounding cannot turn a valid face into a sliver afterwards
         problems = surface_problems(out.vertices, out.faces)
         clock.lap("checks")

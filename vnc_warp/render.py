@@ -478,11 +478,20 @@ def save_png(path: str | os.PathLike, img: Any) -> None:
 
 
 def _font(size: int):
-    """Pillow's default font at ``size`` pixels (a fixed bitmap font on Pillow builds without FreeType)."""
+    """The face of the plots (STIX, shipped with matplotlib: Greek letters and the same look as the axes of
+    :mod:`vnc_warp.plot`) at ``size`` pixels; Pillow's default font where it cannot be loaded."""
     from PIL import ImageFont
 
+    size = max(int(size), 6)
     try:
-        return ImageFont.load_default(size=max(int(size), 6))
+        from matplotlib import font_manager
+
+        path = font_manager.findfont(font_manager.FontProperties(family="STIXGeneral"), fallback_to_default=False)
+        return ImageFont.truetype(path, size)
+    except (ImportError, OSError, ValueError):
+        pass
+    try:
+        return ImageFont.load_default(size=size)
     except (TypeError, ImportError, OSError):
         return ImageFont.load_default()
 

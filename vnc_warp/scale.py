@@ -1,9 +1,15 @@
 """Multi-scale analysis (paper Sec. 3.1): VNC-Scale curves, the global mean curve, VNC-AUC (Eq. 4)
-and adaptive per-vertex scales (Eq. 6)."""
+and adaptive per-vertex scales (Eq. 6).
+
+:func:`scale_curve` and :func:`default_scales` take the mesh as the user holds it (see
+:func:`vnc_warp.mesh.mesh_input`); a :class:`ScaleCurve` remembers how, and :func:`vnc_auc` and
+:func:`adaptive_scale` answer the same way: Warp arrays per mesh vertex for a :class:`~vnc_warp.Mesh`, NumPy
+arrays per input vertex for a trimesh, ``(V, F)`` pair or path, torch tensors for tensors."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -12,9 +18,9 @@ from vnc_warp.kernels import vnc as _k
 
 from . import _pairs
 from ._device import get_device
-from .mesh import Mesh
-from .operators import (_ball_sources, _edge_fields, _host_bounds, _midpoint_bvh, _positions, _segment_bvh,
-                        _soft_sources)
+from .mesh import Mesh, MeshInput, mesh_input
+from .operators import (_ball_sources, _check_values, _degenerate_reason, _edge_fields, _host_bounds, _midpoint_bvh,
+                        _mesh_only, _positions, _segment_bvh, _soft_sources, _warn_once)
 
 __all__ = ["ScaleCurve", "default_scales", "scale_curve", "vnc_auc", "adaptive_scale"]
 
@@ -25,28 +31,43 @@ class ScaleCurve:
 
     Attributes:
         taus: (S,) float64 ascending scales (mesh units).
-        H: (S, V) float32 ``wp.array2d``: ``H[s, k] = H(v_k, taus[s])``.
-        mean: (S,) float32 ``wp.array``: the global mean curve ``mean_k H(v_k, tau)``.
+        H: ``H[s, k] = H(v_k, taus[s])``: a (S, V) float32 ``wp.array2d`` for a :class:`~vnc_warp.Mesh`, a (S, V_in)
+            NumPy array or torch tensor (one column per input vertex) for the other inputs.
+        mean: (S,) float32: the global mean curve ``mean_k H(v_k, tau)`` over the mesh's vertices, in the kind of
+            ``H``.
         variant: "soft" (Eq. 3) or "hard" (Eq. 2).
     """
 
     taus: np.ndarray
-    H: wp.array
-    mean: wp.array
+    H: Any
+    mean: Any
     variant: str
+    _H: wp.array = field(default=None, repr=False)
+    _mean: wp.array = field(default=None, repr=False)
+    _input: MeshInput | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self._H is None:  # made from Warp arrays by hand
+            self._H, self._mean = self.H, self.mean
 
     @property
     def device(self):
-        return self.H.device
+        return self._H.device
+
+    def _result(self, values: wp.array):
+        """A per-vertex result of this curve, answered the way its mesh was given."""
+        return values if self._input is None else self._input.per_vertex(values)
 
 
-def default_scales(mesh: Mesh, num: int = 16, *, lo: float = 2.0, hi: float = 0.25) -> np.ndarray:
+def default_scales(mesh, num: int = 16, *, lo: float = 2.0, hi: float = 0.25) -> np.ndarray:
     """The default scale range, from the mesh alone (never from absolute units).
 
     ``tau_min = lo x mean edge length`` (a neighbourhood of a few rings, so every vertex sees edges) and
     ``tau_max = hi x bounding-box diagonal`` (the shape's large-scale structure), ``num`` scales spaced
-    geometrically between them. Returns (num,) float64.
+    geometrically between them. ``mesh``: a :class:`~vnc_warp.Mesh`, trimesh, ``(V, F)`` pair or path. Returns
+    (num,) float64.
     """
+    mesh = mesh_input(mesh).mesh
     if num < 2:
         raise ValueError(f"need at least 2 scales, got {num}")
     t0 = lo * mesh.mean_edge_length
@@ -67,7 +88,7 @@ def _check_taus(taus) -> np.ndarray:
     return t
 
 
-def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None,
+def scale_curve(mesh, taus=None, variant: str = "soft", *, kappa: float | None = 6.0, device=None,
                 positions: wp.array | None = None, strategy: str = "auto") -> ScaleCurve:
     """VNC-Scale curves ``C(v_k) = H(v_k, tau)`` at every scale, in one neighbour traversal.
 
@@ -75,18 +96,54 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
     reach it, 16 scales at a time in registers (more than 16 scales take one traversal per 16).
 
     Args:
-        mesh: the mesh.
+        mesh: a :class:`~vnc_warp.Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path.
         taus: (S,) ascending scales (mesh units); default :func:`default_scales`.
         variant: "soft" (Eq. 3, ``sigma = tau / kappa``) or "hard" (Eq. 2, radius ``tau``).
         kappa: cut-off ratio (``None`` allowed for "hard": unweighted).
-        device: Warp device (defaults to ``positions.device`` when positions are given).
-        positions: (V,) vec3 ``wp.array`` overriding ``mesh.vertices`` (e.g. a flow iterate on the GPU).
+        device: Warp device (defaults to ``positions.device`` when positions are given, a tensor's device, or the
+            preferred device).
+        positions: (V,) vec3 ``wp.array`` overriding a :class:`~vnc_warp.Mesh`'s vertices (e.g. a flow iterate on
+            the GPU).
         strategy: "auto", "grid", "dense" or "bvh" (see :func:`vnc_warp.vnc_soft`); "auto" decides per
             traversal from its largest scale.
 
     Returns:
-        A :class:`ScaleCurve` with ``H`` of shape (S, V) and the global mean curve.
+        A :class:`ScaleCurve` with ``H`` of shape (S, V) (Warp, for a Mesh) or (S, V_in) (NumPy or torch) and the
+        global mean curve.
     """
+    src = mesh_input(mesh)
+    _mesh_only(src, "scale_curve", positions=positions)
+    if device is None and positions is None:
+        device = src.device
+    curve = _scale_curve(src.mesh, taus, variant, kappa=kappa, device=device, positions=positions,
+                         strategy=strategy)
+    if positions is None:
+        _warn_zero_rows(src, curve, kappa)
+    if src.kind == "warp":
+        return curve
+    return ScaleCurve(curve.taus, src.per_vertex(curve.H, axis=1), src.per_point(curve.mean), variant, curve.H,
+                      curve.mean, src)
+
+
+def _warn_zero_rows(src: MeshInput, curve: ScaleCurve, kappa) -> None:
+    """Warn once when the curve's smallest scales gave 0 at every vertex for want of anything in reach (read where
+    it costs nothing: on the CPU, or for results going to the host anyway)."""
+    if curve.device.is_cuda and src.kind == "warp":
+        return
+    H = curve.H.numpy()
+    zero = ~H.any(axis=1)
+    if not zero.any() or zero.all():  # all zero: a flat surface, no degenerate scale
+        return
+    rows = np.nonzero(zero)[0]
+    reason = _degenerate_reason(src.mesh, float(curve.taus[rows[-1]]), kappa, soft=curve.variant == "soft")
+    if reason is not None:
+        listed = ", ".join(map(str, rows[:6])) + (", ..." if rows.size > 6 else "")
+        _warn_once("scale_curve", reason[0], f"scale_curve on {src.mesh.name}: {rows.size} of {zero.size} scales "
+                                             f"(taus[{listed}]) gave H = 0 at every vertex: {reason[1]}")
+
+
+def _scale_curve(mesh: Mesh, taus, variant: str, *, kappa, device, positions, strategy: str) -> ScaleCurve:
+    """:func:`scale_curve` on a :class:`Mesh`: Warp arrays per mesh vertex."""
     device = positions.device if positions is not None else get_device(device)
     t = _check_taus(default_scales(mesh) if taus is None else taus)
     if variant not in ("soft", "hard"):
@@ -103,6 +160,7 @@ def scale_curve(mesh: Mesh, taus=None, variant: str = "soft", *, kappa: float | 
     taus_wp = wp.array(t.astype(np.float32), dtype=wp.float32, device=device)
     H = wp.empty((S, V), dtype=wp.float32, device=device)
     if strategy == "bvh":
+        _check_values(mesh, x, taus_wp)
         _scale_curve_bvh(x, f, taus_wp, variant, kappa, H)
     else:
         _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool)
@@ -174,33 +232,36 @@ def _scale_curve_cells(mesh, x, f, t, taus_wp, variant, kappa, strategy, H, pool
 
 def _curve_taus(curve: ScaleCurve, taus) -> wp.array:
     t = curve.taus if taus is None else _check_taus(taus)
-    if t.size != curve.H.shape[0]:
-        raise ValueError(f"{t.size} scales given for a curve sampled at {curve.H.shape[0]}")
+    if t.size != curve._H.shape[0]:
+        raise ValueError(f"{t.size} scales given for a curve sampled at {curve._H.shape[0]}")
     return wp.array(t.astype(np.float32), dtype=wp.float32, device=curve.device)
 
 
 def vnc_auc(curve: ScaleCurve, taus=None) -> wp.array:
     """Eq. (4) at ``tau_max``: per-vertex total complexity ``s(v_k) = int |H(v_k, x) - mean(x)| dx``.
 
-    Trapezoid rule over the sampled scales; units of the scales (mesh units). Returns (V,) float32.
+    Trapezoid rule over the sampled scales; units of the scales (mesh units). Returns (V,) float32 per vertex,
+    in the kind of the curve's mesh (a Warp array for a :class:`~vnc_warp.Mesh`, NumPy or torch per input vertex
+    otherwise).
     """
-    V = curve.H.shape[1]
+    V = curve._H.shape[1]
     out = wp.empty(V, dtype=wp.float32, device=curve.device)
-    wp.launch(_k.scale_auc, dim=V, inputs=[curve.H, curve.mean, _curve_taus(curve, taus)], outputs=[out],
+    wp.launch(_k.scale_auc, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus)], outputs=[out],
               device=curve.device)
-    return out
+    return curve._result(out)
 
 
 def adaptive_scale(curve: ScaleCurve, taus=None, phi: float = 0.0) -> wp.array:
     """Eq. (6): per-vertex adaptive scale ``tau_adpt`` where the running VNC-AUC reaches ``phi``.
 
     Complex vertices reach the information budget ``phi`` (mesh units, like Eq. (4)) at small scales,
-    flat ones late; a vertex that never reaches it gets ``tau_max``. Returns (V,) float32.
+    flat ones late; a vertex that never reaches it gets ``tau_max``. Returns (V,) float32 per vertex, in the kind
+    of the curve's mesh (as :func:`vnc_auc`).
     """
     if not np.isfinite(phi) or phi < 0:
         raise ValueError(f"phi must be finite and non-negative, got {phi}")
-    V = curve.H.shape[1]
+    V = curve._H.shape[1]
     out = wp.empty(V, dtype=wp.float32, device=curve.device)
-    wp.launch(_k.adaptive_scale, dim=V, inputs=[curve.H, curve.mean, _curve_taus(curve, taus), float(phi)],
+    wp.launch(_k.adaptive_scale, dim=V, inputs=[curve._H, curve._mean, _curve_taus(curve, taus), float(phi)],
               outputs=[out], device=curve.device)
-    return out
+    return curve._result(out)

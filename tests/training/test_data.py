@@ -10,11 +10,13 @@ import torch
 import trimesh
 
 from vnc_warp import from_arrays
+from vnc_warp.cli import add_common_options
 from vnc_warp.commands import dataset as dataset_cmd
 from vnc_warp.shapes import icosphere
 from vnc_warp.training import data as data_mod
 from vnc_warp.training.data import (DatasetError, TrajectoryDataset, build_dataset, normalization, read_trajectory,
                                      verify_dataset)
+from vnc_warp.trajectory import Trajectory, TrajectoryError
 
 CENTER = np.array([1.0, -2.0, 0.5])
 RADIUS = 0.5
@@ -31,15 +33,16 @@ def _stages():
 
 
 def write_trajectory(root, meshes, ts, *, listed=None):
-    """A fake VNC-Flow trajectory: stage files plus a manifest listing ``listed`` stages (default all)."""
-    root.mkdir(parents=True)
-    stages = []
-    for i, (m, t) in enumerate(zip(meshes, ts)):
-        m.save(root / f"stage_{i:03d}.ply")
-        stages.append({"index": i, "t": t, "file": f"stage_{i:03d}.ply", "iterations": 3})
-    n = len(stages) if listed is None else listed
-    (root / "manifest.json").write_text(json.dumps({"format": "vnc-warp-trajectory/1", "source": "fake.obj",
-                                                    "stages": stages[:n], "num_stages": 2}))
+    """A trajectory folder written by vnc_warp.trajectory: ``listed`` stages finished (default all) and, when fewer,
+    the next stage's file on disk but still being written (a run stopped while saving it)."""
+    n = len(meshes) if listed is None else listed
+    records = [{"index": i, "t": t, "file": f"stage_{i:03d}.ply", "iterations": 3} for i, t in enumerate(ts)]
+    info = {"source": "fake.obj", "params": {"stages": len(meshes) - 1}}
+    Trajectory(list(meshes[:n]), np.array(ts[:n]), records[:n], info).save(root)
+    if n < len(meshes):
+        meshes[n].save(root / records[n]["file"])
+        manifest = json.loads((root / "manifest.json").read_text())
+        (root / "manifest.json").write_text(json.dumps(dict(manifest, writing=records[n]["file"])))
     return root
 
 
@@ -96,6 +99,42 @@ def test_tsdf_labels_match_analytic_sphere(tmp_path, device, monkeypatch):
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
     radial = (p - c_n) / np.linalg.norm(p - c_n, axis=1, keepdims=True)
     assert np.einsum("ij,ij->i", n, radial).min() > 0.98
+
+
+def test_reference_queries_and_fresh_far_queries(tmp_path):
+    """Defect 5 of issue 24 (small fixed query pools): stage 1 (a shrunk sphere) gets far-flagged queries near
+    stage 0's larger sphere, labelled with stage 1's own TSDF; with a TSDF grid, every item draws new far queries
+    in the box, at least half the truncation from the surface, whose labels match the analytic TSDF of the sphere
+    (to the grid's interpolation), and two epochs draw different ones."""
+    traj = write_trajectory(tmp_path / "sphere", [icosphere(3, radius=RADIUS).with_vertices(
+        icosphere(3, radius=RADIUS).vertices + CENTER), _stages()[0].with_vertices(
+        0.6 * (_stages()[0].vertices - CENTER) + CENTER)], [1.0, 0.4])
+    build_dataset([traj], tmp_path / "data", device="cpu", progress=False, num_reference=600, grid_resolution=48,
+                  **SMALL)
+    shape = json.loads((tmp_path / "data" / "index.json").read_text())["shapes"][0]
+    c_n, r0 = (CENTER - np.array(shape["center"])) * shape["scale"], RADIUS * shape["scale"]
+    with np.load(tmp_path / "data" / shape["stages"][1]["file"]) as z:
+        q, tsdf, near, grid = z["queries"].astype(np.float64), z["tsdf"], z["near"], z["grid"]
+    assert q.shape == (3600, 3) and grid.shape == (48, 48, 48) and near.sum() == 1500
+    ref = q[1500:2100]  # after the uniform ones: near stage 0's sphere (radius r0), flagged far
+    assert not near[1500:2100].any() and np.abs(np.linalg.norm(ref - c_n, axis=1) - r0).mean() < 0.03
+    np.testing.assert_allclose(tsdf[1500:2100], np.clip(_analytic_sdf(ref, c_n, 0.6 * r0), -0.1, 0.1), atol=0.006)
+    ds = TrajectoryDataset(tmp_path / "data", num_surface=64, num_queries=400, near_fraction=0.5, fresh_fraction=1.0)
+    item = ds[1]
+    fresh, labels = item["queries"][:200].numpy().astype(np.float64), item["tsdf"][:200].numpy()
+    assert not item["near"][:200].any() and np.abs(labels).min() >= 0.05
+    truth = np.clip(_analytic_sdf(fresh, c_n, 0.6 * r0), -0.1, 0.1)
+    assert np.abs(labels - truth).max() < 0.01 and np.mean(np.abs(labels - truth)) < 0.002
+    ds.set_epoch(1)
+    assert not np.allclose(ds[1]["queries"][:200].numpy(), fresh)
+    with pytest.raises(ValueError, match="grid"):
+        TrajectoryDataset(_no_grid(tmp_path), fresh_fraction=0.5)
+
+
+def _no_grid(tmp_path):
+    traj = write_trajectory(tmp_path / "plain", _stages(), [1.0, 0.55])
+    build_dataset([traj], tmp_path / "plain_data", device="cpu", progress=False, **SMALL)
+    return tmp_path / "plain_data"
 
 
 def test_shared_normalization(built):
@@ -207,8 +246,31 @@ def test_dataset_items_splits_and_seeding(built):
         TrajectoryDataset(base / "data", split="test")
 
 
+def test_on_surface_points_are_the_items_own(built):
+    """With num_on_surface, every item carries points and unit normals on its OWN stage's surface (the stage-1
+    sphere of radius 0.8 r, normalized), also when Stage0Input gives the encoder stage 0's surface (radius r); the
+    near fraction sets the share of near-surface queries (defect 5 of issue 24: on-surface and normal terms need
+    the item's own surface, and most queries near it)."""
+    from vnc_warp.training.train import Stage0Input
+
+    base, _, _ = built
+    ds = TrajectoryDataset(base / "data", num_surface=128, num_queries=400, holdout=["beta"], num_on_surface=200,
+                           near_fraction=0.8)
+    item, wrapped = ds[1], Stage0Input(ds)[1]
+    assert item["on_surface"].shape == (200, 6) and int(item["near"].sum()) == 320
+    assert torch.equal(wrapped["on_surface"], item["on_surface"])
+    shape = json.loads((base / "data" / "index.json").read_text())["shapes"][0]
+    r_norm = RADIUS * shape["scale"]
+    radius = lambda pts: torch.linalg.norm(pts[:, :3], dim=1).numpy()  # noqa: E731  (centred: bbox centre)
+    assert np.allclose(radius(wrapped["surface"]), r_norm, rtol=0.02)            # stage 0, encoder input
+    assert np.allclose(radius(item["on_surface"]), 0.8 * r_norm, rtol=0.06)      # stage 1, its own surface
+    pts, nrm = item["on_surface"][:, :3], item["on_surface"][:, 3:]
+    assert float((torch.nn.functional.normalize(pts, dim=1) * nrm).sum(1).min()) > 0.9  # outward normals
+    assert "on_surface" not in TrajectoryDataset(base / "data", num_surface=128, num_queries=400)[0]
+
+
 def test_partial_trajectory_and_bad_manifests(tmp_path):
-    """Only listed stages count (a partially written trajectory); a wrong format string, a missing
+    """Only listed stages count (a trajectory stopped while writing a stage); a wrong format string, a missing
     stage file or a missing stage 0 is refused with the manifest's path in the message."""
     traj = write_trajectory(tmp_path / "partial", _stages(), [1.0, 0.55], listed=1)
     tr = read_trajectory(traj)
@@ -217,13 +279,14 @@ def test_partial_trajectory_and_bad_manifests(tmp_path):
     assert scale == pytest.approx(1.8 / np.ptp(tr.load_stage(0).vertices, axis=0).max(), rel=1e-6)
     manifest = json.loads((traj / "manifest.json").read_text())
     (traj / "manifest.json").write_text(json.dumps(dict(manifest, format="other/2")))
-    with pytest.raises(DatasetError, match="format must be"):
+    with pytest.raises(TrajectoryError, match="format must be"):
         read_trajectory(traj)
     (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], index=1)])))
-    with pytest.raises(DatasetError, match="stage 0 is not listed"):
+    with pytest.raises(TrajectoryError, match="stage 0 is not listed"):
         read_trajectory(traj)
-    (traj / "manifest.json").write_text(json.dumps(dict(manifest, stages=[dict(manifest["stages"][0], file="x.ply")])))
-    with pytest.raises(FileNotFoundError, match="x.ply"):
+    (traj / "manifest.json").write_text(json.dumps(manifest))
+    (traj / "stage_000.ply").unlink()
+    with pytest.raises(TrajectoryError, match="manifest.json: stage 0 lists stage_000.ply, which is missing"):
         read_trajectory(traj)
 
 
@@ -232,8 +295,9 @@ def test_dataset_command(tmp_path, capsys):
     traj = write_trajectory(tmp_path / "cmd", _stages(), [1.0, 0.55], listed=1)
     parser = argparse.ArgumentParser()
     dataset_cmd.add_arguments(parser)
+    add_common_options(parser)
     args = parser.parse_args([str(traj), "--out", str(tmp_path / "d"), "--device", "cpu", "--num-surface", "200",
-                              "--num-uniform", "200", "--num-near", "200", "--verify", "--quiet"])
+                              "--num-uniform", "200", "--num-near", "200", "--verify", "--no-progress"])
     assert dataset_cmd.run(args) == 0
     out = capsys.readouterr().out
     assert "built 1" in out and "verified 1" in out

@@ -11,7 +11,7 @@ from PIL import Image
 
 from vnc_warp.commands import evaluate as evaluate_cmd
 from vnc_warp.shapes import icosphere, random_shape
-from vnc_warp.training.latent import analyze_latents, pca, pearson, scatter_png
+from vnc_warp.training.latent import analyze_latents, pca, pearson
 from vnc_warp.training.metrics import (chamfer_distance, compare_meshes, earth_movers_distance, evaluate_trajectory,
                                        normal_consistency_error, read_prediction_dir)
 
@@ -153,6 +153,32 @@ def test_evaluate_trajectory_and_command(tmp_path, capsys):
     assert "CD x1e-4" in capsys.readouterr().out
 
 
+def test_floating_fragment_and_unit_box(tmp_path):
+    """A prediction made of the GT stage plus a small sphere far from it (defect 5 of issue 24): two components;
+    its largest component is the GT stage and scores 0, while the whole prediction's CD is large; the unit-box
+    numbers equal an evaluation whose normalization maps the stage-0 box to extent 1 (CD / 1.8^2, EMD / 1.8);
+    every entry carries the sampling floor of its stage."""
+    s0 = random_shape(5, subdivisions=3)
+    s0 = s0.with_vertices(s0.vertices * 30.0 + 7.0)
+    s1 = s0.with_vertices(0.5 * (s0.vertices - 7.0) + 7.0)
+    gt = _write_traj(tmp_path / "gt", [s0, s1], [1.0, 0.4])
+    blob = icosphere(2, radius=3.0)
+    fragment = (np.concatenate([s1.vertices, blob.vertices + [120.0, 7.0, 7.0]]),
+                np.concatenate([s1.faces, blob.faces + s1.num_vertices]))
+    rep = evaluate_trajectory({0.4: fragment, 1.0: s0}, gt, n_points=3000, n_emd=300)
+    frag, whole = rep["per_t"][1], rep["per_t"][0]
+    assert frag["components"] == 2 and whole["components"] == 1
+    assert frag["largest"]["cd_x1e4"] == 0.0 and frag["largest"]["emd_x1e2"] == 0.0
+    assert frag["cd_x1e4"] > 100.0 * frag["floor"]["cd_x1e4"] > 0.0
+    assert rep["mean"]["largest"]["cd_x1e4"] == 0.0 and rep["mean"]["cd_x1e4"] > 0.0
+    lo, hi = s0.vertices.min(0).astype(np.float64), s0.vertices.max(0).astype(np.float64)
+    unit = compare_meshes(fragment, s1, n_points=3000, n_emd=300, normalization=(0.5 * (lo + hi), 1.0 / (hi - lo).max()))
+    assert frag["unit_box"]["cd_x1e4"] == pytest.approx(unit["cd_x1e4"], rel=1e-9)
+    assert frag["unit_box"]["emd_x1e2"] == pytest.approx(unit["emd_x1e2"], rel=1e-9)
+    assert frag["unit_box"]["nce"] == pytest.approx(unit["nce"], rel=1e-6)
+    assert frag["floor"]["cd_x1e4"] != whole["floor"]["cd_x1e4"]  # each stage its own floor
+
+
 def test_pca_and_pearson_against_oracles():
     """PCA recovers the direction of rank-one data with all the variance, scores reproduce the centred
     data; pearson agrees with scipy.stats.pearsonr."""
@@ -171,8 +197,8 @@ def test_pca_and_pearson_against_oracles():
 
 def test_analyze_latents_radial_structure_and_png(tmp_path):
     """Latents scaled by t along a shared direction (the radial structure) give norm/t and |PC1|/t
-    correlations near 1; latents independent of t give small ones; the PCA scatter PNG (Pillow
-    fallback) is a valid image of the requested size with the colour-bar ends drawn."""
+    correlations near 1; latents independent of t give small ones; the PCA scatter PNG is a valid image of the
+    requested size."""
     rng = np.random.default_rng(5)
     n = 120
     t = rng.uniform(0.0, 1.0, n)
@@ -180,12 +206,28 @@ def test_analyze_latents_radial_structure_and_png(tmp_path):
     z = t[:, None, None] * (d + 0.2 * rng.normal(size=(n, 8, 16))) + 0.02 * rng.normal(size=(n, 8, 16))
     rep = analyze_latents(z, t, out_dir=tmp_path, use_umap=False)
     assert rep["norm_t_pearson"] > 0.95 and rep["pc1_t_abs_pearson"] > 0.95
+    assert rep["best_pc"]["pc"] == 1 and rep["best_pc"]["pooled_r"] > 0.95
     noise = analyze_latents(rng.normal(size=(n, 8, 16)), t, use_umap=False)
     assert abs(noise["norm_t_pearson"]) < 0.35 and noise["pc1_t_abs_pearson"] < 0.35
     img = Image.open(rep["plots"]["pca"])
     assert img.format == "PNG" and img.size == (640, 480)
-    path = tmp_path / "fallback.png"
-    assert scatter_png(path, rng.normal(size=(20, 2)), np.linspace(0, 1, 20), backend="pillow") == "pillow"
-    pix = np.asarray(Image.open(path).convert("RGB")).reshape(-1, 3).astype(int)
-    for end in ([68, 1, 84], [253, 231, 37]):
-        assert (np.abs(pix - end).sum(1) == 0).sum() > 20
+
+
+def test_analyze_latents_finds_the_component_that_orders_every_trajectory():
+    """Five trajectories far apart along one direction (PC1: identity, most of the variance) each move along a
+    second, shared direction with t: the best component is PC2, which orders every trajectory by t (r = 1 within
+    each, one sign), while PC1 orders none (defect 4 of issue 24: only PC1 was reported). A direction along which
+    the trajectories run the opposite ways orders each of them but not with one sign: its min_within is -1."""
+    rng = np.random.default_rng(1)
+    ident, shared, mixed = np.linalg.qr(rng.normal(size=(12, 3)))[0].T
+    t = np.tile(np.linspace(0.0, 1.0, 9), 5)
+    groups = np.repeat([f"s{i}" for i in range(5)], 9)
+    offset = np.repeat(np.linspace(-20.0, 20.0, 5), 9)
+    sign = np.repeat([1.0, -1.0, 1.0, -1.0, 1.0], 9)
+    z = offset[:, None] * ident + t[:, None] * shared + 0.3 * (sign * (t - 0.5))[:, None] * mixed
+    rep = analyze_latents(z[:, None, :], t, groups=groups, use_umap=False, num_components=3)
+    assert rep["best_pc"]["pc"] == 2
+    assert rep["best_pc"]["min_within"] == pytest.approx(1.0, abs=1e-9)
+    assert all(r == pytest.approx(1.0, abs=1e-9) for r in rep["best_pc"]["within"].values())
+    assert rep["pcs"][0]["variance"] > 0.99 and abs(rep["pcs"][0]["pooled_r"]) < 0.1
+    assert rep["pcs"][2]["min_within"] == pytest.approx(-1.0, abs=1e-6)

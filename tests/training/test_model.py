@@ -10,7 +10,16 @@ import pytest
 import torch
 
 from vnc_warp.training.config import TrainConfig, load_config, named_config
-from vnc_warp.training.losses import eikonal_loss, kl_weight_at, select_eikonal_queries, tsdf_loss
+from vnc_warp.training.losses import (
+    GradientQueries,
+    cvae_loss,
+    eikonal_loss,
+    gradient_queries,
+    kl_prior_logvar,
+    kl_weight_at,
+    select_eikonal_queries,
+    tsdf_loss,
+)
 from vnc_warp.training.model import (
     CVAE1,
     CVAE2,
@@ -104,6 +113,11 @@ def test_fourier_and_time_embeddings():
     assert math.isclose(float(te[1, 0]), math.cos(500.0), rel_tol=1e-5)
     tok = TimeEmbedding(16, num_tokens=3, freq_dim=8)(torch.tensor([0.1, 0.9]))
     assert tok.shape == (2, 3, 16) and tok.dtype == torch.float32
+    # neighbouring stages of a 32-stage trajectory get nearly the same features (|d feature| <= scale * dt)
+    t = torch.linspace(0.0, 1.0, 33)
+    feats = timestep_embedding(t, 256, scale=TimeEmbedding(16).scale)
+    assert float((feats[1:] - feats[:-1]).abs().max()) <= 10.0 / 32 + 1e-6
+    assert float((timestep_embedding(t, 256)[1:] - timestep_embedding(t, 256)[:-1]).abs().max()) > 1.0
 
 
 def test_attention_matches_explicit_softmax():
@@ -162,6 +176,64 @@ def test_diagonal_gaussian_kl_matches_torch():
     assert torch.allclose(samples.std(0), q.std, rtol=0.1)
 
 
+def test_kl_prior_contracts_toward_t0():
+    """The temporal beta_kl curriculum (defect 3 of issue 24): the KL against N(0, s^2 I) equals torch's closed
+    form; the prior is N(0, I) at t = 1 and N(0, I / R) at t = 0; the pull on a code's mean (gradient of the KL)
+    is R times stronger at t = 0 than at t = 1, and the KL's optimal posterior spread at t = 0 is the prior's
+    (std 1 / sqrt(R)), not the std 1 that a heavier weight on N(0, I) would ask for."""
+    mean, logvar = torch.randn(3, 4, 5), torch.randn(3, 4, 5)
+    pl = torch.tensor([0.0, -1.0, -3.0])
+    ref = torch.distributions.kl_divergence(
+        torch.distributions.Normal(mean, (0.5 * logvar).exp()),
+        torch.distributions.Normal(0.0, (0.5 * pl).exp()[:, None, None].expand_as(mean))).flatten(1).mean(1)
+    assert torch.allclose(DiagonalGaussian(mean, logvar).kl(pl), ref, atol=1e-5)
+    cfg = dataclasses.replace(named_config("tiny").loss, kl_time_ratio=100.0)
+    np.testing.assert_allclose(kl_prior_logvar(torch.tensor([1.0, 0.5, 0.0]), cfg).numpy(),
+                               [0.0, -0.5 * math.log(100.0), -math.log(100.0)], atol=1e-6)
+    assert torch.equal(kl_prior_logvar(torch.tensor([0.0, 1.0]), dataclasses.replace(cfg, kl_time_ratio=1.0)),
+                       torch.zeros(2))
+    mu = torch.full((2, 4, 3), 0.5, requires_grad=True)
+    lv = torch.full((2, 4, 3), -2.0, requires_grad=True)
+    kl = DiagonalGaussian(mu, lv).kl(kl_prior_logvar(torch.tensor([0.0, 1.0]), cfg))
+    g_mu, g_lv = torch.autograd.grad(kl.sum(), (mu, lv))
+    assert float(g_mu[0, 0, 0] / g_mu[1, 0, 0]) == pytest.approx(100.0, rel=1e-5)
+    # d KL / d logvar = 0.5 (e^lv / s^2 - 1) / (M C): zero at lv = log s^2
+    assert float(g_lv[0, 0, 0]) == pytest.approx(0.5 * (math.exp(-2.0) * 100.0 - 1.0) / 12, rel=1e-5)
+    assert float(g_lv[1, 0, 0]) == pytest.approx(0.5 * (math.exp(-2.0) - 1.0) / 12, rel=1e-5)
+
+
+def test_surface_and_normal_terms_on_analytic_spheres():
+    """L_surf and L_normal against analytic SDFs of a sphere of radius 0.5 (defect 5 of issue 24): the exact SDF
+    at points on the sphere with outward normals scores 0 and 0; the SDF shifted by 0.05 scores L_surf = 0.05;
+    inward normals score L_normal = 2; the weighted L_tsdf and the gradient points follow the batch."""
+    torch.manual_seed(0)
+    b, q, s = 2, 40, 30
+    n = torch.nn.functional.normalize(torch.randn(b, s, 3), dim=-1)
+    batch = {"queries": torch.rand(b, q, 3) * 2 - 1, "near": torch.rand(b, q) < 0.5,
+             "on_surface": torch.cat([0.5 * n, n], -1), "tsdf": torch.zeros(b, q), "t": torch.rand(b)}
+    cfg = dataclasses.replace(named_config("tiny").loss, eikonal_queries=10, surface_weight=1.0, normal_weight=0.1)
+    grad_q = gradient_queries(batch, cfg)
+    assert isinstance(grad_q, GradientQueries) and grad_q.points.shape == (b, 10 + s, 3)
+    assert grad_q.points.requires_grad and grad_q.num_surface == s and grad_q.near[:, 10:].all()
+
+    def terms(offset: float, flip: float) -> dict:
+        gq = GradientQueries(grad_q.points, grad_q.near, flip * grad_q.normals)
+        out = {"tsdf": batch["queries"].norm(dim=-1) - 0.5, "mean": torch.zeros(b, 4, 2), "logvar": torch.zeros(b, 4, 2),
+               "eikonal_tsdf": gq.points.norm(dim=-1) - 0.5 + offset}
+        return {k: v.detach() for k, v in cvae_loss(out, batch, cfg, step=0, gradient=gq).items()}
+
+    exact = terms(0.0, 1.0)
+    assert float(exact["surf"]) < 1e-7 and float(exact["normal"]) < 1e-6 and float(exact["eik"]) < 1e-6
+    assert float(terms(0.05, 1.0)["surf"]) == pytest.approx(0.05, rel=1e-5)
+    assert float(terms(0.0, -1.0)["normal"]) == pytest.approx(2.0, rel=1e-5)
+    err = (batch["queries"].norm(dim=-1) - 0.5).abs()
+    w = torch.where(batch["near"], 4.0, 1.0)
+    weighted = tsdf_loss(batch["queries"].norm(dim=-1) - 0.5, torch.zeros(b, q), near=batch["near"], near_weight=4.0)
+    assert float(weighted) == pytest.approx(float((w * err).sum() / w.sum()), rel=1e-6)
+    with pytest.raises(ValueError, match="on_surface"):
+        gradient_queries({k: v for k, v in batch.items() if k != "on_surface"}, cfg)
+
+
 @pytest.mark.parametrize("kind", ["vae", "cvae1", "cvae2"])
 def test_models_forward_shapes(kind, tdevice):
     """encode/decode/forward shapes and dtypes of the three models; C-VAEs insist on t."""
@@ -177,7 +249,7 @@ def test_models_forward_shapes(kind, tdevice):
     t = torch.tensor([0.0, 0.5, 1.0], device=tdevice)
     out = model(s, q, t)
     assert out["tsdf"].shape == (3, 120) and out["tsdf"].dtype == torch.float32
-    assert out["kl"].shape == (3,) and out["z"].shape == (3, 16, 8)
+    assert out["mean"].shape == out["logvar"].shape == out["z"].shape == (3, 16, 8)
     eq = q[:, :10].clone().requires_grad_(True)
     assert model(s, q, t, eikonal_queries=eq)["eikonal_tsdf"].shape == (3, 10)
     model.eval()
@@ -236,7 +308,7 @@ def test_cvae2_encoder_frozen_through_a_step():
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-2)
     s, q = _surface(2, 40), torch.rand(2, 50, 3) * 2 - 1
     out = model(s, q, torch.tensor([0.2, 0.8]))
-    (out["tsdf"].square().mean() + out["kl"].mean()).backward()
+    (out["tsdf"].square().mean() + DiagonalGaussian(out["mean"], out["logvar"]).kl().mean()).backward()
     assert all(p.grad is None for p in model.frozen.parameters())
     opt.step()
     assert all(torch.equal(frozen[k], v) for k, v in model.frozen.state_dict().items())
@@ -247,11 +319,23 @@ def test_cvae2_encoder_frozen_through_a_step():
 
 
 def test_latent_modulator_identity_at_init():
-    """The zero-initialised modulator output leaves the frozen posterior unchanged."""
-    mod = LatentModulator(latent_dim=8, width=32, heads=4, depth=2)
-    prior = DiagonalGaussian(torch.randn(2, 5, 8), torch.randn(2, 5, 8))
+    """At initialisation z_ctl's mean is the frozen z_geo's and its log-variance is the modulator's own
+    ``logvar_init``, whatever the frozen encoder's log-variance (defect 2 of issue 24: a frozen spread of ~1 was
+    inherited, so C-VAE-II trained its decoder on noise)."""
+    mod = LatentModulator(latent_dim=8, width=32, heads=4, depth=2, logvar_init=-6.0)
+    prior = DiagonalGaussian(torch.randn(2, 5, 8), torch.zeros(2, 5, 8))
     post = mod(prior, torch.randn(2, 3, 32))
-    assert torch.equal(post.mean, prior.mean) and torch.equal(post.logvar, prior.logvar)
+    assert torch.equal(post.mean, prior.mean)
+    assert torch.equal(post.logvar, torch.full_like(prior.logvar, -6.0))
+
+
+def test_bottleneck_starts_narrow():
+    """The KL bottleneck's posterior starts at log-variance ``logvar_init`` for any features (defect 1 of issue
+    24: it started near 0, so training decoded codes with std ~1 around the mean that inference decodes)."""
+    torch.manual_seed(0)
+    post = KLBottleneck(32, latent_dim=8).posterior(torch.randn(2, 16, 32) * 5)
+    assert torch.equal(post.logvar, torch.full_like(post.logvar, -8.0))
+    assert float(post.std.max().detach()) < 0.02 and float(post.mean.abs().max().detach()) > 0.1
 
 
 def test_eikonal_loss_analytic_sphere():

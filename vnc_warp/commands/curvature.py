@@ -26,10 +26,12 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     import vnc_warp as vw
+    from vnc_warp._files import output_dir
+    from vnc_warp.data import mesh_path
     from vnc_warp.render import colormap
 
-    from vnc_warp.data import mesh_path
-
+    base = os.path.splitext(args.out)[0]
+    output_dir(os.path.dirname(os.path.abspath(base)), what=f"--out {args.out}: folder")
     args.mesh = str(args.mesh or mesh_path("spot"))
     mesh = vw.load_mesh(args.mesh)
     if args.tau is not None and args.tau_edges is not None:
@@ -53,8 +55,6 @@ def run(args) -> int:
         op = vw.vnc_soft if args.variant == "soft" else vw.vnc_hard
         normals = op(mesh, float(taus[args.color_scale]), kappa=args.kappa, device=args.device)[1].numpy()
     seconds = time.perf_counter() - t0
-    base = os.path.splitext(args.out)[0]
-    os.makedirs(os.path.dirname(os.path.abspath(base)), exist_ok=True)
     h = H_all[args.color_scale]
     lim = float(np.quantile(np.abs(h - np.median(h)), 0.98)) or 1.0
     rgb = colormap(h, "coolwarm", vmin=float(np.median(h)) - lim, vmax=float(np.median(h)) + lim)

@@ -3,10 +3,10 @@
 On the bundled Spot (or ``--mesh``) the demo computes VNC across scales, runs a short VNC-Flow and, with
 ``--compare``, its fixed-scale and mean-curvature-flow baselines, then writes into ``--out``:
 
-* ``curvature_scales.png`` (Fig. 5), ``scale_stability.png`` (Fig. 6), ``flow_auc.png`` (Fig. 8a),
-  ``adaptive_scales.png`` (Fig. 8b), ``filmstrip.png`` (Fig. 9a), ``comparison.png`` (Fig. 7); with
-  ``--checkpoint`` of a trained C-VAE also ``decoded_trajectory.png`` (Fig. 9b) and ``latent_space.png``
-  (Fig. 11);
+* the plots ``scale_stability`` (Fig. 6) and ``flow_auc`` (Fig. 8a) as PNG and PDF (matplotlib); the mesh
+  renders ``curvature_scales.png`` (Fig. 5), ``adaptive_scales.png`` (Fig. 8b), ``filmstrip.png`` (Fig. 9a),
+  ``comparison.png`` (Fig. 7); with ``--checkpoint`` of a trained C-VAE also ``decoded_trajectory.png``
+  (Fig. 9b) and ``latent_space`` (Fig. 11, PNG and PDF);
 * ``meshes/*.ply``: the input coloured by VNC at the scales of Fig. 5 and every flow stage coloured by VNC;
 * ``summary.json``: settings, timings, the curvature statistics of Fig. 6, ``t``, sphericity, iterations
   and status per stage, the ``[width, height]`` of every PNG and the list of files written.
@@ -30,6 +30,9 @@ from pathlib import Path
 import numpy as np
 
 HELP = "the paper's figures in one command: VNC across scales, a short VNC-Flow, PNGs, coloured PLYs, summary.json"
+
+#: The vector copies of the plots (matplotlib writes a PDF beside each plot's PNG).
+PLOTS = ("scale_stability.pdf", "flow_auc.pdf", "latent_space.pdf")
 
 #: Fig. 7 rows: label -> FlowParams overrides of the comparison flows.
 COMPARISON = {
@@ -60,7 +63,6 @@ def add_arguments(p) -> None:
                    help="a trained C-VAE (checkpoint file or run folder): also decode the input at the flow's t "
                         "(Fig. 9b) and plot its latents across t (Fig. 11)")
     p.add_argument("--resolution", type=int, default=64, help="marching-cubes grid of the decoded meshes")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def _vnc_colors(values: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
@@ -129,6 +131,7 @@ def run(args) -> int:
     import vnc_warp as vw
     from vnc_warp import figures
     from vnc_warp._device import get_device
+    from vnc_warp._files import output_dir
     from vnc_warp.data import mesh_path
     from vnc_warp.flow import flow, sphericity
 
@@ -138,7 +141,7 @@ def run(args) -> int:
             raise ValueError(f"--{name.replace('_', '-')} must be >= {2 if name == 'scales' else 1}")
     t_start = time.perf_counter()
     out = Path(args.out)
-    (out / "meshes").mkdir(parents=True, exist_ok=True)
+    output_dir(out / "meshes", what="--out")
     device = get_device(args.device)
     src = str(args.mesh or mesh_path("spot"))
     mesh = vw.load_mesh(src)
@@ -162,8 +165,7 @@ def run(args) -> int:
                                                               limits=limits, frame_size=size, device=device)
     images["scale_stability.png"] = figures.scale_stability(
         taus, {"VNC-soft (Eq. 3)": soft, "VNC-hard (Eq. 2)": hard}, {"baseline (Eq. 1)": base},
-        out / "scale_stability.png", edge_length=mesh.mean_edge_length,
-        panel_size=(max(size * 2, 480), max(size * 3 // 2, 380)))
+        out / "scale_stability.png", edge_length=mesh.mean_edge_length)
     for i in shown:
         p = out / "meshes" / f"input_vnc_scale{i:02d}.ply"
         mesh.save(p, vertex_colors=_vnc_colors(soft[i], limits))
@@ -183,8 +185,7 @@ def run(args) -> int:
     steps.start("flow figures")
     params = traj.info["params"]
     flow_taus = np.asarray(traj.info["taus"])
-    images["flow_auc.png"] = figures.flow_auc(traj, out / "flow_auc.png",
-                                              size=(max(size * 3, 720), max(size * 3 // 2, 420)))
+    images["flow_auc.png"] = figures.flow_auc(traj, out / "flow_auc.png")
     picked = figures._evenly(len(traj.meshes) - 1, 4) if len(traj.meshes) > 2 else [0]
     maps, curves = [], {}
     for i, m in enumerate(traj.meshes):
@@ -252,12 +253,13 @@ def run(args) -> int:
         "cvae": cvae,
         "notes": notes,
         "images": {name: [int(img.shape[1]), int(img.shape[0])] for name, img in images.items()},
-        "files": list(images) + [os.path.relpath(f, out) for f in files] + ["summary.json"],
+        "files": list(images) + [n[:-4] + ".pdf" for n in images if n[:-4] + ".pdf" in PLOTS]
+                 + [os.path.relpath(f, out) for f in files] + ["summary.json"],
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(f"vnc-warp demo: {mesh.name} on {device}, {total:.1f} s; t = "
           + ", ".join(f"{v:.3f}" for v in traj.t) + f"; wrote {len(summary['files'])} files to {out}:")
     for f in summary["files"]:
-        if f.endswith(".png") or f == "summary.json":
+        if f.endswith((".png", ".pdf")) or f == "summary.json":
             print(f"  {out / f}")
     return 0

@@ -8,7 +8,8 @@ import json
 import sys
 from pathlib import Path
 
-HELP = "score generated meshes against a ground-truth VNC-Flow trajectory (CD x1e-4, EMD x1e-2, NCE rad)"
+HELP = ("score generated meshes against a ground-truth VNC-Flow trajectory (CD x1e-4, EMD x1e-2, NCE rad; whole and "
+        "largest component, beside the sampling floor)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,9 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-emd", type=int, default=4096, help="surface samples for the exact EMD (O(n^3))")
     parser.add_argument("--unoriented", action="store_true", help="unoriented NCE (angle of |n1 . n2|)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed")
-    parser.add_argument("--baseline", default=None, metavar="VAE_CKPT",
-                        help="also score the latent-interpolation baseline of this plain-VAE checkpoint: it encodes "
-                             "the GT stage 0 and last stage and decodes their linear blend at the same times")
+    parser.add_argument("--baseline", default=None, metavar="VAE_RUN",
+                        help="also score the latent-interpolation baseline of this plain VAE (a run folder or a "
+                             "checkpoint file): it encodes the GT stage 0 and last stage and decodes their linear "
+                             "blend at the same times")
     parser.add_argument("--baseline-out", default=None, metavar="DIR",
                         help="folder of the baseline's meshes (default: <PRED>_baseline)")
     parser.add_argument("--resolution", type=int, default=128, help="baseline marching-cubes grid samples per axis")
@@ -31,15 +33,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _print_rows(report: dict) -> None:
-    print(f"{'t':>7} {'t_gt':>7} {'stage':>5} {'CD x1e-4':>10} {'EMD x1e-2':>10} {'NCE rad':>8}")
+    print(f"{'t':>7} {'t_gt':>7} {'stage':>5} {'CD x1e-4':>10} {'EMD x1e-2':>10} {'NCE rad':>8} {'parts':>5} "
+          f"{'CD largest':>10} {'CD floor':>9}")
     for e in report["per_t"]:
         if "error" in e:
             print(f"{e['t']:7.4f} {e['t_gt']:7.4f} {e['stage']:5d}  error: {e['error']}")
         else:
             print(f"{e['t']:7.4f} {e['t_gt']:7.4f} {e['stage']:5d} {e['cd_x1e4']:10.3f} {e['emd_x1e2']:10.3f} "
-                  f"{e['nce']:8.3f}")
+                  f"{e['nce']:8.3f} {e['components']:5d} {e['largest']['cd_x1e4']:10.3f} {e['floor']['cd_x1e4']:9.3f}")
     m = report["mean"]
-    print(f"{'mean':>21} {m['cd_x1e4']:10.3f} {m['emd_x1e2']:10.3f} {m['nce']:8.3f}")
+    print(f"{'mean':>21} {m['cd_x1e4']:10.3f} {m['emd_x1e2']:10.3f} {m['nce']:8.3f} {'':5} "
+          f"{m['largest']['cd_x1e4']:10.3f}")
 
 
 def run(args: argparse.Namespace) -> int:

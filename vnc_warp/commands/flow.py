@@ -21,7 +21,6 @@ def add_flow_options(p) -> None:
     p.add_argument("--no-remesh", action="store_true", help="skip SDF remeshing (input must be watertight)")
     p.add_argument("--allow-changes", action="store_true",
                    help="accept a first remesh that drops components or loses parts thinner than its grid")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def flow_kwargs(args) -> dict:
@@ -39,7 +38,11 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from vnc_warp.flow import flow
 
-    traj = flow(args.mesh, out_dir=args.out, **flow_kwargs(args))
+    try:
+        traj = flow(args.mesh, out_dir=args.out, **flow_kwargs(args))
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"the finished stages are kept in {args.out}; run the same command again to "
+                                "resume") from None
     last = traj.records[-1]
     print(json.dumps({"out": args.out, "stages": len(traj.meshes) - 1, "t": [round(float(t), 4) for t in traj.t],
                       "final_sphericity": last["sphericity"], "seconds": sum(r["seconds"] for r in traj.records)}))

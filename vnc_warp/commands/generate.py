@@ -16,7 +16,9 @@ def _times(text: str) -> list[float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("checkpoint", metavar="CKPT", help="checkpoint file (or run folder with checkpoints/last.pt)")
+    parser.add_argument("checkpoint", metavar="RUN",
+                        help="a trained model: the run folder of `vnc-warp train --out RUN` (its checkpoints/last.pt) "
+                             "or a checkpoint file")
     parser.add_argument("--input", required=True, metavar="MESH", help="detailed input mesh (t = 1), any units")
     parser.add_argument("--t", type=_times, default=[0.0, 0.25, 0.5, 0.75, 1.0], help="comma-separated times in [0, 1]")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -27,8 +29,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", default="ply", help="mesh file extension (ply, obj, stl, ...)")
 
 
+def _check_format(extension: str) -> None:
+    """Refuse a mesh format trimesh cannot write before anything is decoded."""
+    import trimesh
+
+    try:
+        trimesh.creation.box().export(file_type=extension)
+    except Exception:  # trimesh raises ValueError or KeyError for unknown types
+        raise ValueError(f"--format {extension!r}: not a mesh format trimesh can write (ply, obj, stl, off, glb, "
+                         "...)") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    from vnc_warp._files import output_dir
     from vnc_warp.training.inference import generate
+
+    _check_format(args.format)
+    output_dir(args.out, what="--out")
 
     report = generate(args.checkpoint, args.input, args.t, args.out, resolution=args.resolution, device=args.device,
                       num_surface=args.num_surface, seed=args.seed, file_format=args.format)

@@ -1,5 +1,8 @@
 """``vnc-warp train``: train the C-VAE (or the plain VecSet VAE) on a trajectory dataset.
 
+Running the same command again resumes the run in ``--out`` (settings compared: see
+:mod:`vnc_warp.training.train`); ``--restart`` starts over. Ctrl-C (SIGINT) or SIGTERM writes a checkpoint first.
+
 Several GPUs or nodes: launch through torchrun, e.g.
 ``torchrun --nproc_per_node=8 -m vnc_warp.cli train --config cvae1 --data DATA --out RUN``.
 """
@@ -23,11 +26,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="torch device (default: cuda when present, else cpu)")
     parser.add_argument("--steps", type=int, default=None, help="override optim.total_steps (schedule length and end)")
     parser.add_argument("--stop-at", type=int, default=None,
-                        help="stop after this step, keeping the schedule of total_steps (resume later with --resume)")
-    parser.add_argument("--resume", action="store_true", help="continue exactly from RUN_DIR/checkpoints/last.pt")
-    parser.add_argument("--pretrained", default=None, help="C-VAE-II: checkpoint of the plain VAE to freeze")
+                        help="stop after this step, keeping the schedule of total_steps (run again to resume)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue exactly from RUN_DIR/checkpoints/last.pt, which must exist (a run folder "
+                             "with a checkpoint is resumed anyway: it is never overwritten without --restart)")
+    parser.add_argument("--restart", action="store_true",
+                        help="discard RUN_DIR's checkpoint and log and train from step 0")
+    parser.add_argument("--pretrained", default=None, metavar="RUN",
+                        help="C-VAE-II: the plain VAE to freeze, its run folder or a checkpoint file")
     parser.add_argument("--num-workers", type=int, default=None, help="override data.num_workers")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,8 +48,8 @@ def run(args: argparse.Namespace) -> int:
         config.model = dataclasses.replace(config.model, pretrained=args.pretrained)
     if args.num_workers is not None:
         config.data = dataclasses.replace(config.data, num_workers=args.num_workers)
-    summary = train(config, data=args.data, out_dir=args.out, device=args.device, resume=args.resume,
-                    stop_at=args.stop_at, progress=not args.no_progress)
+    summary = train(config, data=args.data, out_dir=args.out, device=args.device, resume=args.resume or None,
+                    restart=args.restart, stop_at=args.stop_at, progress=not args.no_progress)
     if summary["rank"] == 0:
         print(json.dumps({k: summary[k] for k in ("step", "checkpoint", "world_size", "samples_per_s", "last")}))
     return 0
