@@ -1,6 +1,6 @@
 """VNC-Flow on the real meshes: how well each trajectory keeps its budgets, and where the seconds go.
 
-    python -m bench.flow_report --meshes ../shared/data/meshes --all --stages 32 --device cuda:0 --out OUT
+    python -m bench.flow_report --meshes ../shared/data/meshes --all --stages 32 --device cuda --max-minutes 7 --out OUT
     python -m bench.flow_report --names human_man.obj bunny.obj --stages 8 --max-faces 3000 --device cpu --out OUT
     python -m bench.flow_report --compare human_man.obj armadillo.obj --device cuda:0 --out fig7
 
@@ -18,9 +18,11 @@ For every mesh (``--all``: every closed mesh in the folder; ``--names``: those) 
   adaptive scales and thickness budgets; steps; S evaluations; record).
 
 Writes ``OUT/flow_report.json`` (every stage record) and ``OUT/flow_report.md`` (the summary table, tuned and
-held-out meshes apart, and the part breakdown). ``--compare`` runs VNC-Flow, the fixed-scale variants and
-explicit/implicit mean curvature flow instead (Fig. 7). ``--max-minutes`` stops starting new runs once the
-budget is spent, so a GPU session ends on time; what finished is written.
+held-out meshes apart, and the part breakdown: ready to paste into the README), and for human_man and FAUST 025
+(run first) their trajectories under ``OUT/trajectories`` and filmstrips ``OUT/filmstrip_<mesh>.png``.
+``--compare`` runs VNC-Flow, the fixed-scale variants and explicit/implicit mean curvature flow instead (Fig. 7).
+``--max-minutes``: a mesh is skipped (and listed as skipped) when the slowest run so far, per face, says it would
+end after the budget, so one GPU session ends on time; what finished is written after every run.
 """
 
 from __future__ import annotations
@@ -34,9 +36,12 @@ import warnings
 
 import numpy as np
 
-# The meshes the flow's rule constants were tuned on (thin_fraction, tolerance, the remesher's agreement
-# thresholds); every other closed mesh is held out and reported apart.
-TUNED = ("human_man.obj", "spot_lowres.obj", "bunny.obj", "torus.obj", "wingnut.obj", "fandisk.obj")
+# The meshes the flow's rule constants (tube_rho, ball_rho, tolerance) and the remesher's agreement thresholds
+# were tuned or diagnosed on; every other closed mesh is held out and reported apart.
+TUNED = ("human_man.obj", "faust_tr_reg_025.ply", "spot_lowres.obj", "bunny.obj", "torus.obj", "wingnut.obj",
+         "fandisk.obj", "springer.obj", "penguin.obj")
+# Run first (a time budget skips the last meshes, never these), with filmstrips under --out.
+BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
 VARIANTS = {
     "vnc_adaptive": {},
     "fixed_small": {"scale_mode": "small"},
@@ -105,16 +110,16 @@ def remesh_alone(traj, device) -> dict:
     """``S`` before and after remeshing stage 0 once more with the trajectory's remesher settings."""
     import warp as wp
 
-    from vnc_warp.flow import total_complexity
+    from vnc_warp.flow import _as_saved, total_complexity
     from vnc_warp.remesh import _Remesher
 
     p = traj.info["params"]
-    m0 = traj.meshes[0]
+    m0 = _as_saved(traj.meshes[0])
     taus = np.asarray(traj.info["taus"])
     remesher = _Remesher(faces=p["faces"], resolution=p["resolution"], device=device, warn=False)
     remesher.adopt(m0, traj.info["remesh_spacing"], traj.info["source"])
     t0 = time.perf_counter()
-    m1, report = remesher(positions=wp.array(m0.vertices, dtype=wp.vec3, device=device))
+    m1, report = remesher(positions=wp.array(m0.local_vertices, dtype=wp.vec3, device=device))
     seconds = time.perf_counter() - t0
     S0, S1 = traj.info["S_init"], total_complexity(m1, taus, kappa=p["kappa"], device=device)
     return {"dS": S1 / S0 - 1.0, "method": report.method, "why": report.why_level_set, "seconds": seconds,
@@ -128,16 +133,22 @@ def _run(path, variant, params, args):
     faces = args.faces
     if faces is None and args.max_faces:
         faces = min(load_mesh(path).num_faces, args.max_faces)
+    name = os.path.basename(path)
+    film = variant == "vnc_adaptive" and name in BODIES
+    out_dir = os.path.join(args.out, "trajectories", name) if film else None
+    if out_dir is not None and os.path.exists(out_dir):
+        import shutil
+
+        shutil.rmtree(out_dir)  # a bench run times the whole flow: never resume an older one
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         traj = flow(path, stages=args.stages, faces=faces, device=args.device, progress=False,
-                    max_iters=args.max_iters, **params)
+                    max_iters=args.max_iters, out_dir=out_dir, **params)
     seconds = time.perf_counter() - t0
     keep = ("index", "t", "target_t", "iterations", "evaluations", "seconds", "sphericity", "thickness",
             "thickness_ratio", "euler", "status", "exception", "vertices", "faces")
     stages = [{k: r.get(k) for k in keep} | {"remesh": (r.get("remesh") or {}).get("method")} for r in traj.records]
-    name = os.path.basename(path)
     run = {"mesh": name, "variant": variant, "held_out": name not in TUNED, "faces": traj.meshes[0].num_faces,
            "seconds": seconds, "stages": stages, "final_t": float(traj.t[-1]),
            "input_sphericity": traj.records[0]["sphericity"], "final_sphericity": traj.records[-1]["sphericity"],
@@ -146,7 +157,24 @@ def _run(path, variant, params, args):
         run.update(summarize(traj, args.stages))
         if traj.info["params"]["remesh"]:
             run["remesh_alone"] = remesh_alone(traj, args.device)
+    if film:
+        from bench.flow_filmstrip import main as filmstrip
+
+        png = os.path.join(args.out, f"filmstrip_{os.path.splitext(name)[0]}.png")
+        filmstrip([out_dir, "--labels", f"{name}, {run['faces']:,} faces", "--every", str(max(args.stages // 8, 1)),
+                   "--title", f"VNC-Flow, {args.stages} stages", "--device", args.device, "--out", png])
+        run["filmstrip"] = png
     return run
+
+
+def _faces(path: str, args) -> int:
+    """The face count a run of ``path`` flows at (``--faces``, else the input's capped at ``--max-faces``)."""
+    if args.faces:
+        return args.faces
+    import trimesh
+
+    n = len(trimesh.load(path, process=False, force="mesh").faces)
+    return min(n, args.max_faces) if args.max_faces else n
 
 
 def _fmt(x, spec=".3f"):
@@ -210,7 +238,8 @@ def main(argv=None) -> int:
                    help="cap on each input's face count (the paper's 50k); 0: no cap")
     p.add_argument("--max-iters", type=int, default=300)
     p.add_argument("--device", default=None)
-    p.add_argument("--max-minutes", type=float, default=9.0, help="start no new run after this")
+    p.add_argument("--max-minutes", type=float, default=7.0,
+                   help="skip a mesh when the runs so far say it would end after this many minutes")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -223,6 +252,7 @@ def main(argv=None) -> int:
     args.device = str(dev)
     os.makedirs(args.out, exist_ok=True)
     names = closed_meshes(args.meshes) if args.all else list(args.names)
+    names = [n for n in BODIES if n in names] + [n for n in names if n not in BODIES]
     jobs = [(n, "vnc_adaptive") for n in (names if not args.compare else [])]
     jobs += [(n, v) for n in args.compare for v in VARIANTS]
     report = {"device": dev.name if hasattr(dev, "name") else str(dev), "device_alias": str(dev),
@@ -231,17 +261,23 @@ def main(argv=None) -> int:
               "command": "python -m bench.flow_report " + " ".join(argv if argv is not None else os.sys.argv[1:]),
               "runs": [], "skipped": []}
     start = time.perf_counter()
+    per_face = 0.0  # the slowest finished run's seconds per face: what the next one is expected to take
     for name, variant in jobs:
-        if time.perf_counter() - start > 60 * args.max_minutes:
-            report["skipped"].append({"mesh": name, "variant": variant, "why": "time budget"})
+        path = os.path.join(args.meshes, name)
+        expected = per_face * _faces(path, args)
+        if time.perf_counter() - start + expected > 60 * args.max_minutes:
+            report["skipped"].append({"mesh": name, "variant": variant,
+                                      "why": f"time budget ({args.max_minutes:g} min; expected {expected:.0f} s)"})
+            print(f"{name:24s} {variant:14s} skipped: over the {args.max_minutes:g}-minute budget", flush=True)
             continue
         try:
-            run = _run(os.path.join(args.meshes, name), variant, VARIANTS[variant], args)
+            run = _run(path, variant, VARIANTS[variant], args)
         except Exception as exc:  # a failing run is reported, the others still run
             report["runs"].append({"mesh": name, "variant": variant, "error": f"{type(exc).__name__}: {exc}"})
             print(f"{name:24s} {variant:14s} error: {type(exc).__name__}: {exc}", flush=True)
             continue
         report["runs"].append(run)
+        per_face = max(per_face, run["seconds"] / max(run["faces"], 1))
         extra = ""
         if variant == "vnc_adaptive":
             extra = (f"  max|dt| {run['max_dt_ruled']:.3f} (all {run['max_dt']:.3f})  thickness ratio "
@@ -263,6 +299,8 @@ def main(argv=None) -> int:
         body += [f"| {r['mesh']} | {r['variant']} | {r['seconds']:.1f} | {r['final_t']:.3f} | "
                  f"{r['input_sphericity']:.3f} -> {r['final_sphericity']:.3f} |" for r in others] + [""]
     body += [stage_table(r, args.stages) + "\n" for r in report["runs"] if "error" not in r]
+    if report["skipped"]:
+        body += ["Skipped (time budget): " + ", ".join(r["mesh"] for r in report["skipped"]), ""]
     with open(os.path.join(args.out, "flow_report.md"), "w") as fh:
         fh.write("\n".join(body))
     with open(os.path.join(args.out, "flow_report.json"), "w") as fh:

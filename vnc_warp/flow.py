@@ -648,7 +648,7 @@ def flow(
             traj.records.append(rec)
             traj.t = np.append(traj.t, rec["t"])
             if rec.get("exception"):
-                warnings.warn(f"VNC-Flow {name} stage {i}: {rec['exception']}", stacklevel=2)
+                warnings.warn(f"VNC-Flow stage {i}: {rec['exception']} ({name})", stacklevel=2)
             if out_dir is not None:
                 traj.save(out_dir)
             if bar is not None:

@@ -659,6 +659,8 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple[np.ndar
 def _largest_component(v: np.ndarray, f: np.ndarray):
     """The connected component with the most area, its vertices renumbered."""
     label, area = _components(v, f)
+    if not f.shape[0]:
+        return v, f
     return _keep_faces(v, f, label == np.argmax(area))
 
 
@@ -960,6 +962,16 @@ class _HalfEdgeSurface:
         self.x, self.x_next = self.x_next, self.x
 
 
+def _repairs_text(repairs: dict) -> str:
+    """What :func:`_read_source` repaired, in words ("1 non-manifold edge(s), 2 duplicate face(s) removed")."""
+    return ", ".join(f"{n} {what}" for key, what in (("non_manifold_edges", "non-manifold edge(s)"),
+                                                     ("non_manifold_vertices", "non-manifold vertex(es)"),
+                                                     ("duplicate_faces", "duplicate face(s) removed"),
+                                                     ("degenerate_faces", "degenerate face(s) removed"),
+                                                     ("reoriented_faces", "face(s) re-wound"))
+                     if (n := repairs.get(key)))
+
+
 class _Remesher:
     """:func:`sdf_remesh` with its settings fixed and the last result kept on the device as half-edges.
 
@@ -1205,8 +1217,9 @@ class _Remesher:
                 if after_cut is None:
                     return done
                 failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")
-        raise MeshError(f"sdf_remesh: {self.name}: no valid surface after {len(failures)} attempt(s): "
-                        + " | ".join(failures))
+        what = _repairs_text(report.repairs)
+        raise MeshError(f"sdf_remesh: {self.name}: no valid surface after {len(failures)} attempt(s)"
+                        + (f" from an input with {what}" if what else "") + ": " + " | ".join(failures))
 
     def _finish(self, v, f, surface, area, target, report, clock):
         """Orient outward, regularize, scale to ``area`` (if given) and check a decimated surface.
@@ -1244,15 +1257,9 @@ class _Remesher:
     def _conclude(self, report: RemeshReport, expected: int | None, *, refuse: bool) -> RemeshReport:
         """Say what was repaired or changed; refuse (``refuse``: a new input, not a VNC-Flow state whose
         changes are the flow's own) a result that is not a faithful surface unless allowed."""
-        r = report.repairs
-        fixed = [f"{n} {what}" for key, what in (("non_manifold_edges", "non-manifold edge(s)"),
-                                                 ("non_manifold_vertices", "non-manifold vertex(es)"),
-                                                 ("duplicate_faces", "duplicate face(s) removed"),
-                                                 ("degenerate_faces", "degenerate face(s) removed"),
-                                                 ("reoriented_faces", "face(s) re-wound"))
-                 if (n := r.get(key))]
+        fixed = _repairs_text(report.repairs)
         if fixed:
-            report.changes.append("repaired the input: " + ", ".join(fixed))
+            report.changes.append("repaired the input: " + fixed)
         if report.components_in > 1 and report.dropped_components == 0:
             report.changes.append(f"joined the input's {report.components_in} components into one surface")
         if report.dropped_components:
