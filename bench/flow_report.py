@@ -134,7 +134,7 @@ def _run(path, variant, params, args):
     if faces is None and args.max_faces:
         faces = min(load_mesh(path).num_faces, args.max_faces)
     name = os.path.basename(path)
-    film = variant == "vnc_adaptive" and name in BODIES
+    film = variant == "vnc_adaptive" and name in args.filmstrips
     out_dir = os.path.join(args.out, "trajectories", name) if film else None
     if out_dir is not None and os.path.exists(out_dir):
         import shutil
@@ -240,6 +240,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None)
     p.add_argument("--max-minutes", type=float, default=7.0,
                    help="skip a mesh when the runs so far say it would end after this many minutes")
+    p.add_argument("--filmstrips", nargs="*", default=list(BODIES),
+                   help="meshes whose trajectories are kept under OUT/trajectories, with a filmstrip PNG each")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -252,7 +254,8 @@ def main(argv=None) -> int:
     args.device = str(dev)
     os.makedirs(args.out, exist_ok=True)
     names = closed_meshes(args.meshes) if args.all else list(args.names)
-    names = [n for n in BODIES if n in names] + [n for n in names if n not in BODIES]
+    first = [n for n in BODIES if n in names]
+    names = first + [n for n in names if n not in first]
     jobs = [(n, "vnc_adaptive") for n in (names if not args.compare else [])]
     jobs += [(n, v) for n in args.compare for v in VARIANTS]
     report = {"device": dev.name if hasattr(dev, "name") else str(dev), "device_alias": str(dev),
@@ -265,7 +268,7 @@ def main(argv=None) -> int:
     for name, variant in jobs:
         path = os.path.join(args.meshes, name)
         expected = per_face * _faces(path, args)
-        if time.perf_counter() - start + expected > 60 * args.max_minutes:
+        if report["runs"] and time.perf_counter() - start + expected > 60 * args.max_minutes:
             report["skipped"].append({"mesh": name, "variant": variant,
                                       "why": f"time budget ({args.max_minutes:g} min; expected {expected:.0f} s)"})
             print(f"{name:24s} {variant:14s} skipped: over the {args.max_minutes:g}-minute budget", flush=True)

@@ -419,3 +419,23 @@ def test_flow_batch_gives_each_rank_its_own_gpu(monkeypatch):
     assert rank_device(None, 1) == "cpu"
     with pytest.raises(ValueError, match="no CUDA device"):
         rank_device("cuda", 0)
+
+
+def test_flow_far_from_the_origin_matches_the_flow_at_the_origin():
+    """A shape moved 10^4 of its diagonals away from the origin flows like the shape at the origin: the stages and
+    the remesher compute relative to stage 0's centre (float64), and only the saved float32 coordinates are
+    absolute. Same t per stage to 1e-3, and every stage's vertices (shifted back) lie on the unshifted stage's
+    surface: within 0.05 edge lengths on average, 0.3 at most (the float32 rounding of the saved coordinates is
+    about 0.01 edge lengths there, and tie-breaks of the re-tessellation move a vertex along the surface)."""
+    m = random_shape(2, subdivisions=3)
+    v = m.vertices.astype(np.float64)
+    shift = 1e4 * m.bbox_diagonal * np.array([1.0, -2.0, 3.0]) / np.sqrt(14.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        near = flow((v, m.faces), stages=2, device="cpu", progress=False)
+        far = flow((v + shift, m.faces), stages=2, device="cpu", progress=False)
+    np.testing.assert_allclose(far.t, near.t, atol=1e-3)
+    edge = near.meshes[0].mean_edge_length
+    for a, b in zip(near.meshes, far.meshes):
+        _, d, _ = trimesh.proximity.closest_point(a.to_trimesh(), b.vertices.astype(np.float64) - shift)
+        assert d.mean() < 0.05 * edge and d.max() < 0.3 * edge, (d.mean() / edge, d.max() / edge)
