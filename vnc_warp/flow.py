@@ -519,7 +519,13 @@ def _as_saved(mesh: Mesh, origin: np.ndarray | None = None) -> Mesh:
     float32), so that a run resumed from its files continues bit-identically to one never interrupted. With
     ``origin``, in the trajectory's frame: its :attr:`~vnc_warp.mesh.Mesh.local_vertices`, what the stages compute
     on, are taken relative to ``origin`` (float64), the same for a state just made and one read from disk."""
-    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), mesh.faces, mesh.topology, mesh.name,
+    from .mesh import _build_topology
+
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    # the edges in the order load_mesh gives them (the remesher builds them on the device in another order, and
+    # the order of the sums over edges shows in the last bits)
+    topology, _ = _build_topology(faces)
+    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), faces, topology, mesh.name,
                 origin=None if origin is None else np.asarray(origin, np.float64))
 
 
@@ -632,7 +638,9 @@ def flow(
             i = len(traj.meshes)
             t0 = time.perf_counter()
             # the state as stored, so that a resumed run goes on from exactly what an uninterrupted one does
-            prev = _as_saved(traj.meshes[-1], origin)
+            prev = traj.meshes[-1]
+            if not np.array_equal(prev.origin, origin):  # read from disk: into the trajectory's frame
+                prev = _as_saved(prev, origin)
             rec = {"index": i}
             if remesher is not None and i > 1:
                 cur, report = remesher(positions=wp.array(prev.local_vertices, dtype=wp.vec3, device=device))
@@ -640,7 +648,7 @@ def flow(
             else:
                 cur = prev
             state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
-            state = _as_saved(state)
+            state = _as_saved(state, origin)
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             last = traj.records[-1]
             rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
