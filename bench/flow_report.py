@@ -1,12 +1,28 @@
-"""VNC-Flow on real meshes: sphericity and t per stage, iterations and seconds, and the Fig. 7 comparison.
+"""VNC-Flow on the real meshes: how well each trajectory keeps its budgets, and where the seconds go.
 
-    python -m bench.flow_report --meshes ../shared/data/meshes --device cuda:0 --stages 32 --out flow_report
+    python -m bench.flow_report --meshes ../shared/data/meshes --all --stages 32 --device cuda --max-minutes 7 --out OUT
+    python -m bench.flow_report --names human_man.obj bunny.obj --stages 8 --max-faces 3000 --device cpu --out OUT
     python -m bench.flow_report --compare human_man.obj armadillo.obj --device cuda:0 --out fig7
 
-Writes ``OUT/flow_report.json`` and ``OUT/flow_report.md`` (a table per mesh: stage, t, ideal 1 - i/N,
-iterations, seconds, sphericity, status) and, with ``--compare``, the same numbers for VNC-Flow, the
-fixed-scale variants and explicit/implicit mean curvature flow (Fig. 7). ``--max-minutes`` stops starting new
-runs once the budget is spent, so a GPU session ends on time; what finished is written.
+For every mesh (``--all``: every closed mesh in the folder; ``--names``: those) it runs VNC-Flow and measures
+
+* **t control**: the largest ``|t_i - (1 - i/N)|`` over the recorded stages, over all of them and over those that
+  are not a documented exception (the last stage; a stage whose remesh changed the topology), and whether any
+  two consecutive stages hold the same mesh;
+* **thinning**: the smallest stage-to-stage ratio of the 5th-percentile relative thickness (4096 area-weighted
+  rays along inward normals, over the radius of the sphere of equal area);
+* **remesh alone**: the change of the total VNC-AUC ``S`` (16 scales of stage 0) when stage 0 is remeshed once
+  more with the trajectory's remesher and nothing else happens;
+* **seconds**: wall seconds of the whole flow (stage 0's remesh included), and the part breakdown summed over
+  stages: remesh (input, SDF, marching cubes, components, decimation, regularization, checks) and stages (setup:
+  adaptive scales and thickness budgets; steps; S evaluations; record).
+
+Writes ``OUT/flow_report.json`` (every stage record) and ``OUT/flow_report.md`` (the summary table, tuned and
+held-out meshes apart, and the part breakdown: ready to paste into the README), and for human_man and FAUST 025
+(run first) their trajectories under ``OUT/trajectories`` and filmstrips ``OUT/filmstrip_<mesh>.png``.
+``--compare`` runs VNC-Flow, the fixed-scale variants and explicit/implicit mean curvature flow instead (Fig. 7).
+``--max-minutes``: a mesh is skipped (and listed as skipped) when the slowest run so far, per face, says it would
+end after the budget, so one GPU session ends on time; what finished is written after every run.
 """
 
 from __future__ import annotations
@@ -20,8 +36,12 @@ import warnings
 
 import numpy as np
 
-DEFAULT_MESHES = ["spot.obj", "bunny.obj", "armadillo.obj", "human_man.obj", "faust_tr_reg_025.ply", "fandisk.obj",
-                  "torus.obj"]
+# The meshes the flow's rule constants (tube_rho, ball_rho, tolerance) and the remesher's agreement thresholds
+# were tuned or diagnosed on; every other closed mesh is held out and reported apart.
+TUNED = ("human_man.obj", "faust_tr_reg_025.ply", "spot_lowres.obj", "bunny.obj", "torus.obj", "wingnut.obj",
+         "fandisk.obj", "springer.obj", "penguin.obj")
+# Run first (a time budget skips the last meshes, never these), with filmstrips under --out.
+BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
 VARIANTS = {
     "vnc_adaptive": {},
     "fixed_small": {"scale_mode": "small"},
@@ -29,31 +49,177 @@ VARIANTS = {
     "mcf_explicit": {"method": "mcf_explicit"},
     "mcf_implicit": {"method": "mcf_implicit"},
 }
+REMESH_PARTS = ("input", "sdf", "marching_cubes", "components", "decimation", "regularize", "checks")
+STAGE_PARTS = ("setup", "steps", "evaluations", "record")
+
+
+def closed_meshes(folder: str) -> list[str]:
+    """Mesh files in ``folder`` that load as watertight surfaces, by name."""
+    import vnc_warp as vw
+
+    out = []
+    for name in sorted(os.listdir(folder)):
+        if os.path.splitext(name)[1].lower() not in (".obj", ".ply", ".off", ".stl"):
+            continue
+        try:
+            if vw.load_mesh(os.path.join(folder, name)).is_watertight:
+                out.append(name)
+        except ValueError:
+            continue
+    return out
+
+
+def _exception(rec: dict, n: int) -> str | None:
+    """Which documented exception a stage record is, if any."""
+    if rec["index"] == n:
+        return "last stage"
+    rm = rec.get("remesh") or {}
+    if rm and rm.get("euler") != rm.get("euler_in"):
+        return "topology change"
+    return None
+
+
+def summarize(traj, n: int) -> dict:
+    """t control, thinning and same-mesh facts of a trajectory."""
+    recs = traj.records
+    dev = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:]]
+    ruled = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:] if _exception(r, n) is None]
+    ratios = [r["thickness_ratio"] for r in recs[1:] if r.get("thickness_ratio")]
+    same = [i for i, (m, prev) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1]), start=1)
+            if m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices)]
+    return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
+            "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
+            "min_thickness_ratio": min(ratios, default=None), "thickness": [r["thickness"] for r in recs],
+            "same_mesh_stages": same, "final_t": float(traj.t[-1]),
+            "statuses": {s: sum(r["status"] == s for r in recs[1:]) for s in {r["status"] for r in recs[1:]}}}
+
+
+def parts(traj) -> dict:
+    """Seconds per part summed over the trajectory's records."""
+    out = {f"remesh.{k}": 0.0 for k in REMESH_PARTS}
+    out.update({f"stage.{k}": 0.0 for k in STAGE_PARTS})
+    for r in traj.records:
+        for k, v in ((r.get("remesh") or {}).get("seconds") or {}).items():
+            out[f"remesh.{k}"] = out.get(f"remesh.{k}", 0.0) + v
+        for k, v in (r.get("parts") or {}).items():
+            out[f"stage.{k}"] = out.get(f"stage.{k}", 0.0) + v
+    return out
+
+
+def remesh_alone(traj, device) -> dict:
+    """``S`` before and after remeshing stage 0 once more with the trajectory's remesher settings."""
+    import warp as wp
+
+    from vnc_warp.flow import _as_saved, total_complexity
+    from vnc_warp.remesh import _Remesher
+
+    p = traj.info["params"]
+    m0 = _as_saved(traj.meshes[0])
+    taus = np.asarray(traj.info["taus"])
+    remesher = _Remesher(faces=p["faces"], resolution=p["resolution"], device=device, warn=False)
+    remesher.adopt(m0, traj.info["remesh_spacing"], traj.info["source"])
+    t0 = time.perf_counter()
+    m1, report = remesher(positions=wp.array(m0.local_vertices, dtype=wp.vec3, device=device))
+    seconds = time.perf_counter() - t0
+    S0, S1 = traj.info["S_init"], total_complexity(m1, taus, kappa=p["kappa"], device=device)
+    return {"dS": S1 / S0 - 1.0, "method": report.method, "why": report.why_level_set, "seconds": seconds,
+            "parts": report.seconds}
 
 
 def _run(path, variant, params, args):
     from vnc_warp.flow import flow
+    from vnc_warp.mesh import load_mesh
 
+    faces = args.faces
+    if faces is None and args.max_faces:
+        faces = min(load_mesh(path).num_faces, args.max_faces)
+    name = os.path.basename(path)
+    film = variant == "vnc_adaptive" and name in args.filmstrips
+    out_dir = os.path.join(args.out, "trajectories", name) if film else None
+    if out_dir is not None and os.path.exists(out_dir):
+        import shutil
+
+        shutil.rmtree(out_dir)  # a bench run times the whole flow: never resume an older one
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        traj = flow(path, stages=args.stages, faces=args.faces, device=args.device, progress=False,
-                    max_iters=args.max_iters, **params)
-    stages = [{k: r[k] for k in ("index", "t", "iterations", "seconds", "sphericity", "euler", "status", "vertices", "faces")}
-              for r in traj.records]
-    return {"mesh": os.path.basename(path), "variant": variant, "stages": stages, "seconds": time.perf_counter() - t0,
-            "final_t": float(traj.t[-1]), "final_sphericity": traj.records[-1]["sphericity"],
-            "input_sphericity": traj.records[0]["sphericity"], "warnings": len(caught)}
+        traj = flow(path, stages=args.stages, faces=faces, device=args.device, progress=False,
+                    max_iters=args.max_iters, out_dir=out_dir, **params)
+    seconds = time.perf_counter() - t0
+    keep = ("index", "t", "target_t", "iterations", "evaluations", "seconds", "sphericity", "thickness",
+            "thickness_ratio", "euler", "status", "exception", "vertices", "faces")
+    stages = [{k: r.get(k) for k in keep} | {"remesh": (r.get("remesh") or {}).get("method")} for r in traj.records]
+    run = {"mesh": name, "variant": variant, "held_out": name not in TUNED, "faces": traj.meshes[0].num_faces,
+           "seconds": seconds, "stages": stages, "final_t": float(traj.t[-1]),
+           "input_sphericity": traj.records[0]["sphericity"], "final_sphericity": traj.records[-1]["sphericity"],
+           "warnings": [str(w.message) for w in caught], "parts": parts(traj)}
+    if variant == "vnc_adaptive":
+        run.update(summarize(traj, args.stages))
+        if traj.info["params"]["remesh"]:
+            run["remesh_alone"] = remesh_alone(traj, args.device)
+    if film:
+        from bench.flow_filmstrip import main as filmstrip
+
+        png = os.path.join(args.out, f"filmstrip_{os.path.splitext(name)[0]}.png")
+        filmstrip([out_dir, "--labels", f"{name}, {run['faces']:,} faces", "--every", str(max(args.stages // 8, 1)),
+                   "--title", f"VNC-Flow, {args.stages} stages", "--device", args.device, "--out", png])
+        run["filmstrip"] = png
+    return run
 
 
-def _table(run, n) -> str:
+def _faces(path: str, args) -> int:
+    """The face count a run of ``path`` flows at (``--faces``, else the input's capped at ``--max-faces``)."""
+    if args.faces:
+        return args.faces
+    import trimesh
+
+    n = len(trimesh.load(path, process=False, force="mesh").faces)
+    return min(n, args.max_faces) if args.max_faces else n
+
+
+def _fmt(x, spec=".3f"):
+    return "" if x is None else format(x, spec)
+
+
+def summary_table(runs: list, title: str) -> list[str]:
+    lines = [f"#### {title}", "",
+             "| mesh | faces | max \\|t_i - (1 - i/N)\\| (exceptions out) | all stages | exceptions | smallest "
+             "thickness ratio | S change, one remesh | seconds | remesh s | stage s | final t |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        if "error" in r:
+            lines.append(f"| {r['mesh']} | | error: {r['error']} | | | | | | | | |")
+            continue
+        p = r["parts"]
+        rem = sum(v for k, v in p.items() if k.startswith("remesh."))
+        stg = sum(v for k, v in p.items() if k.startswith("stage."))
+        exc = ", ".join(f"{i}: {e}" for i, e in r["exceptions"].items())
+        ra = r.get("remesh_alone") or {}
+        lines.append(f"| {r['mesh']} | {r['faces']:,} | {_fmt(r['max_dt_ruled'])} | {_fmt(r['max_dt'])} | {exc} | "
+                     f"{_fmt(r['min_thickness_ratio'])} | {_fmt(100 * ra['dS'], '+.2f') + ' %' if ra else ''} | "
+                     f"{r['seconds']:.1f} | {rem:.1f} | {stg:.1f} | {r['final_t']:.3f} |")
+    return lines
+
+
+def parts_table(runs: list) -> list[str]:
+    keys = [f"remesh.{k}" for k in REMESH_PARTS] + [f"stage.{k}" for k in STAGE_PARTS]
+    lines = ["| mesh | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+    for r in runs:
+        if "error" not in r:
+            lines.append(f"| {r['mesh']} | " + " | ".join(f"{r['parts'].get(k, 0.0):.2f}" for k in keys) + " |")
+    return lines
+
+
+def stage_table(run: dict, n: int) -> str:
     lines = [f"### {run['mesh']} — {run['variant']} ({run['seconds']:.1f} s, sphericity "
              f"{run['input_sphericity']:.3f} -> {run['final_sphericity']:.3f})", "",
-             "| stage | t | ideal 1-i/N | iterations | seconds | sphericity | Euler | status |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| stage | t | ideal 1-i/N | iterations | evaluations | seconds | sphericity | thickness | ratio | Euler | "
+             "remesh | status |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in run["stages"]:
         lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {r['iterations']} | "
-                     f"{r['seconds']:.2f} | {r['sphericity']:.3f} | {r.get('euler', '')} | {r['status']} |")
+                     f"{r.get('evaluations') or ''} | {r['seconds']:.2f} | {r['sphericity']:.3f} | "
+                     f"{_fmt(r.get('thickness'))} | {_fmt(r.get('thickness_ratio'))} | {r.get('euler', '')} | "
+                     f"{r.get('remesh') or ''} | {r['status']} |")
     return "\n".join(lines)
 
 
@@ -62,13 +228,20 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--meshes", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "meshes"),
                    help="folder of the real meshes")
-    p.add_argument("--names", nargs="*", default=DEFAULT_MESHES, help="meshes to flow with VNC-Flow")
+    p.add_argument("--all", action="store_true", help="every closed mesh in --meshes")
+    p.add_argument("--names", nargs="*", default=["human_man.obj", "faust_tr_reg_025.ply"],
+                   help="meshes to flow with VNC-Flow (without --all)")
     p.add_argument("--compare", nargs="*", default=[], help="meshes for the Fig. 7 comparison (all variants)")
     p.add_argument("--stages", type=int, default=32)
-    p.add_argument("--faces", type=int, default=None, help="face count (default: each input's)")
+    p.add_argument("--faces", type=int, default=None, help="face count of every run (default: each input's)")
+    p.add_argument("--max-faces", type=int, default=50_000,
+                   help="cap on each input's face count (the paper's 50k); 0: no cap")
     p.add_argument("--max-iters", type=int, default=300)
     p.add_argument("--device", default=None)
-    p.add_argument("--max-minutes", type=float, default=9.0, help="start no new run after this")
+    p.add_argument("--max-minutes", type=float, default=7.0,
+                   help="skip a mesh when the runs so far say it would end after this many minutes")
+    p.add_argument("--filmstrips", nargs="*", default=list(BODIES),
+                   help="meshes whose trajectories are kept under OUT/trajectories, with a filmstrip PNG each")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -78,43 +251,64 @@ def main(argv=None) -> int:
     from vnc_warp._device import get_device
 
     dev = get_device(args.device)
+    args.device = str(dev)
     os.makedirs(args.out, exist_ok=True)
-    jobs = [(n, "vnc_adaptive") for n in (args.names if not args.compare else [])]
+    names = closed_meshes(args.meshes) if args.all else list(args.names)
+    first = [n for n in BODIES if n in names]
+    names = first + [n for n in names if n not in first]
+    jobs = [(n, "vnc_adaptive") for n in (names if not args.compare else [])]
     jobs += [(n, v) for n in args.compare for v in VARIANTS]
     report = {"device": dev.name if hasattr(dev, "name") else str(dev), "device_alias": str(dev),
               "warp": wp.__version__, "vnc_warp": vnc_warp.__version__, "python": platform.python_version(),
-              "stages": args.stages, "faces": args.faces, "runs": [], "skipped": []}
+              "stages": args.stages, "faces": args.faces, "max_faces": args.max_faces, "tuned": list(TUNED),
+              "command": "python -m bench.flow_report " + " ".join(argv if argv is not None else os.sys.argv[1:]),
+              "runs": [], "skipped": []}
     start = time.perf_counter()
+    per_face = 0.0  # the slowest finished run's seconds per face: what the next one is expected to take
     for name, variant in jobs:
-        if time.perf_counter() - start > 60 * args.max_minutes:
-            report["skipped"].append({"mesh": name, "variant": variant, "why": "time budget"})
+        path = os.path.join(args.meshes, name)
+        expected = per_face * _faces(path, args)
+        if report["runs"] and time.perf_counter() - start + expected > 60 * args.max_minutes:
+            report["skipped"].append({"mesh": name, "variant": variant,
+                                      "why": f"time budget ({args.max_minutes:g} min; expected {expected:.0f} s)"})
+            print(f"{name:24s} {variant:14s} skipped: over the {args.max_minutes:g}-minute budget", flush=True)
             continue
         try:
-            run = _run(os.path.join(args.meshes, name), variant, VARIANTS[variant], args)
+            run = _run(path, variant, VARIANTS[variant], args)
         except Exception as exc:  # a failing run is reported, the others still run
             report["runs"].append({"mesh": name, "variant": variant, "error": f"{type(exc).__name__}: {exc}"})
+            print(f"{name:24s} {variant:14s} error: {type(exc).__name__}: {exc}", flush=True)
             continue
         report["runs"].append(run)
-        print(f"{name:24s} {variant:14s} {run['seconds']:7.1f} s  t_final {run['final_t']:.3f}  "
-              f"sphericity {run['input_sphericity']:.3f} -> {run['final_sphericity']:.3f}", flush=True)
+        per_face = max(per_face, run["seconds"] / max(run["faces"], 1))
+        extra = ""
+        if variant == "vnc_adaptive":
+            extra = (f"  max|dt| {run['max_dt_ruled']:.3f} (all {run['max_dt']:.3f})  thickness ratio "
+                     f"{_fmt(run['min_thickness_ratio'])}  remesh alone "
+                     f"{100 * run['remesh_alone']['dS']:+.2f} %" if "remesh_alone" in run else "")
+        print(f"{name:24s} {variant:14s} {run['seconds']:7.1f} s  t_final {run['final_t']:.3f}{extra}", flush=True)
         with open(os.path.join(args.out, "flow_report.json"), "w") as fh:
             json.dump(report, fh, indent=1)
-    summary = ["| mesh | variant | seconds | final t | sphericity in -> out | stages meeting budget |",
-               "|---|---|---|---|---|---|"]
-    for r in report["runs"]:
-        if "error" in r:
-            summary.append(f"| {r['mesh']} | {r['variant']} | error: {r['error']} | | | |")
-            continue
-        met = sum(s["status"] == "budget" for s in r["stages"][1:])
-        summary.append(f"| {r['mesh']} | {r['variant']} | {r['seconds']:.1f} | {r['final_t']:.3f} | "
-                       f"{r['input_sphericity']:.3f} -> {r['final_sphericity']:.3f} | {met}/{len(r['stages']) - 1} |")
-    body = [f"Device: {report['device']}; stages {args.stages}; warp {report['warp']}", "", *summary, ""]
-    body += [_table(r, args.stages) + "\n" for r in report["runs"] if "error" not in r]
+    flows = [r for r in report["runs"] if r["variant"] == "vnc_adaptive"]
+    body = [f"Device: {report['device']}; stages {args.stages}; faces: each input's, at most {args.max_faces:,}; "
+            f"warp {report['warp']}; command: `{report['command']}`", ""]
+    if flows:
+        body += summary_table([r for r in flows if not r.get("held_out")], "Meshes the rule constants were tuned on")
+        body += [""] + summary_table([r for r in flows if r.get("held_out")], "Held-out meshes") + [""]
+        body += ["#### Seconds per part (summed over the stages)", ""] + parts_table(flows) + [""]
+    others = [r for r in report["runs"] if r["variant"] != "vnc_adaptive" and "error" not in r]
+    if others:
+        body += ["| mesh | variant | seconds | final t | sphericity in -> out |", "|---|---|---|---|---|"]
+        body += [f"| {r['mesh']} | {r['variant']} | {r['seconds']:.1f} | {r['final_t']:.3f} | "
+                 f"{r['input_sphericity']:.3f} -> {r['final_sphericity']:.3f} |" for r in others] + [""]
+    body += [stage_table(r, args.stages) + "\n" for r in report["runs"] if "error" not in r]
+    if report["skipped"]:
+        body += ["Skipped (time budget): " + ", ".join(r["mesh"] for r in report["skipped"]), ""]
     with open(os.path.join(args.out, "flow_report.md"), "w") as fh:
         fh.write("\n".join(body))
     with open(os.path.join(args.out, "flow_report.json"), "w") as fh:
         json.dump(report, fh, indent=1)
-    print("\n".join(summary))
+    print("\n".join(body[:2 + 2 * (len(flows) + 8)]))
     return 0
 
 

@@ -39,6 +39,12 @@ def mean_adjoint(out_grad: wp.array(dtype=float), inv_count: float, values_grad:
     values_grad[k] = values_grad[k] + out_grad[0] * inv_count
 
 
+@wp.func
+def eq5_move(H: float, H_ref: float, lam: float, max_move: float) -> float:
+    """Eq. (5): the inward move ``lambda (H(v_k, tau_k) - H_ref)`` along the normal, clamped to ``max_move``."""
+    return wp.clamp(lam * (H - H_ref), -max_move, max_move)
+
+
 @wp.kernel
 def flow_step(
     x_in: wp.array(dtype=wp.vec3),
@@ -51,7 +57,73 @@ def flow_step(
 ):
     """Eq. (5): ``v_k <- v_k - lambda (H(v_k, tau_k) - H_ref) n(v_k, tau_k)``, each move clamped to ``max_move[k]``."""
     k = wp.tid()
-    d = lam * (H[k] - H_ref[0])
-    m = max_move[k]
-    d = wp.clamp(d, -m, m)
-    x_out[k] = x_in[k] - d * n[k]
+    x_out[k] = x_in[k] - eq5_move(H[k], H_ref[0], lam, max_move[k]) * n[k]
+
+
+@wp.kernel(enable_backward=False)
+def balanced_step(
+    x_in: wp.array(dtype=wp.vec3),
+    H: wp.array(dtype=float),
+    n: wp.array(dtype=wp.vec3),
+    H_ref: wp.array(dtype=float),
+    lam: float,
+    max_move: wp.array(dtype=float),
+    part: wp.array(dtype=float),
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """Eq. (5) as :func:`flow_step`, with the thin-part correction ``part[k]`` taken off the deviation:
+    ``v_k <- v_k - clamp(lambda (H(v_k, tau_k) - H_ref - part_k)) n(v_k, tau_k)`` (see
+    :func:`thin_part_correction`)."""
+    k = wp.tid()
+    x_out[k] = x_in[k] - eq5_move(H[k] - part[k], H_ref[0], lam, max_move[k]) * n[k]
+
+
+@wp.kernel(enable_backward=False)
+def thin_part_correction(
+    thickness: wp.array(dtype=float),
+    H_large: wp.array2d(dtype=float),
+    mean_large: wp.array(dtype=float),
+    row: int,
+    edge: float,
+    tube: float,
+    ball: float,
+    out: wp.array(dtype=float),
+):
+    """Per vertex: ``(1 - c_k) max(H(v_k, tau_max) - mean(tau_max), 0)``, the part-scale excess curvature turned
+    around where the part is tube-like. ``c_k`` goes from -1 at shape factor ``rho <= tube`` to 1 at ``rho >= ball``,
+    with ``rho = thickness * 2 sqrt(3) H(v_k, tau_max) / edge``: the thickness along the inward normal times the
+    mean curvature (VNC-soft's dimensionless H is ``edge / (2 sqrt(3))`` times it on a regular tessellation), 1 on a
+    tube, 2 on a ball, more at a tip. ``H_large[row]`` is the scale curve at tau_max; a vertex whose inward ray
+    found no surface (``thickness < 0``) keeps Eq. (5)."""
+    k = wp.tid()
+    t = thickness[k]
+    h = H_large[row, k]
+    c = float(1.0)
+    if t > 0.0:
+        rho = t * 3.4641016 * h / edge
+        c = wp.clamp(2.0 * (rho - tube) / wp.max(ball - tube, 1.0e-6) - 1.0, -1.0, 1.0)
+    out[k] = (1.0 - c) * wp.max(h - mean_large[row], 0.0)
+
+
+@wp.kernel(enable_backward=False)
+def max_deviation(values: wp.array(dtype=float), ref: wp.array(dtype=float), out: wp.array(dtype=float)):
+    """``out[0] = max_k |values[k] - ref[0]|`` (``out`` zeroed first)."""
+    k = wp.tid()
+    wp.atomic_max(out, 0, wp.abs(values[k] - ref[0]))
+
+
+@wp.kernel(enable_backward=False)
+def deviation_histogram(values: wp.array(dtype=float), ref: wp.array(dtype=float), top: wp.array(dtype=float),
+                        counts: wp.array(dtype=wp.int32)):
+    """Histogram of ``|values[k] - ref[0]|`` over ``[0, top[0]]`` in ``counts.shape[0]`` equal bins (zeroed first)."""
+    k = wp.tid()
+    bins = counts.shape[0]
+    b = int(float(bins) * wp.abs(values[k] - ref[0]) / wp.max(top[0], 1.0e-30))
+    wp.atomic_add(counts, wp.clamp(b, 0, bins - 1), 1)
+
+
+@wp.kernel(enable_backward=False)
+def lerp_positions(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), theta: float, out: wp.array(dtype=wp.vec3)):
+    """Per vertex: ``a + theta (b - a)``: a state on the chord between two states of one stage."""
+    k = wp.tid()
+    out[k] = a[k] + theta * (b[k] - a[k])

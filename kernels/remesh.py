@@ -569,9 +569,96 @@ def apply_flips(
     out_he[d] = F1 + 2
 
 
+@wp.func
+def phong_point(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), normals: wp.array(dtype=wp.vec3),
+                face: int, u: float, v: float, flat_cos: float) -> wp.vec3:
+    """The point at barycentrics ``(u, v, 1 - u - v)`` of a face, lifted onto the surface's Phong
+    tessellation (Boubekeur and Alexa 2008, shape factor 3/4): the flat point projected onto the
+    tangent planes of the three corners (unit vertex ``normals``), blended with the same weights.
+
+    Vertices of a mesh lie on the surface it samples and its faces are chords under it; the lifted
+    point lies on a smooth interpolation through the vertices, so a re-tessellation projected there
+    neither flattens nor (after rescaling the area) inflates the shape. Where two corner normals
+    differ by more than ``acos(flat_cos)`` (a crease) the flat point is kept.
+    """
+    i0 = indices[3 * face]
+    i1 = indices[3 * face + 1]
+    i2 = indices[3 * face + 2]
+    w = 1.0 - u - v
+    q = u * points[i0] + v * points[i1] + w * points[i2]
+    n0 = normals[i0]
+    n1 = normals[i1]
+    n2 = normals[i2]
+    if wp.dot(n0, n1) < flat_cos or wp.dot(n1, n2) < flat_cos or wp.dot(n2, n0) < flat_cos:
+        return q
+    t0 = q - wp.dot(q - points[i0], n0) * n0
+    t1 = q - wp.dot(q - points[i1], n1) * n1
+    t2 = q - wp.dot(q - points[i2], n2) * n2
+    return 0.25 * q + 0.75 * (u * t0 + v * t1 + w * t2)
+
+
+@wp.kernel(enable_backward=False)
+def vertex_normals(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
+    """Per face: add its area-weighted normal (its cross product) to its three corners (``out`` zeroed first;
+    normalize after)."""
+    f = wp.tid()
+    a = tri[3 * f]
+    b = tri[3 * f + 1]
+    c = tri[3 * f + 2]
+    n = wp.cross(x[b] - x[a], x[c] - x[a])
+    wp.atomic_add(out, a, n)
+    wp.atomic_add(out, b, n)
+    wp.atomic_add(out, c, n)
+
+
+@wp.kernel(enable_backward=False)
+def normalize_vectors(v: wp.array(dtype=wp.vec3)):
+    """Per entry: scale to unit length (zero stays zero)."""
+    i = wp.tid()
+    n = wp.length(v[i])
+    if n > 0.0:
+        v[i] = v[i] / n
+
+
+@wp.func
+def surface_target(surface: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                   normals: wp.array(dtype=wp.vec3), p: wp.vec3, n: wp.vec3, max_dist: float, flat_cos: float,
+                   ) -> wp.vec4:
+    """The Phong-lifted closest point of ``surface`` to ``p`` within ``max_dist`` (xyz) and 1 (w), or w = 0
+    when there is none or it lies on a face facing away from ``n`` (the other side of a thin part)."""
+    hit = wp.mesh_query_point_no_sign(surface, p, max_dist)
+    if hit.result:
+        if wp.dot(wp.mesh_eval_face_normal(surface, hit.face), n) > 0.0:
+            q = phong_point(points, indices, normals, hit.face, hit.u, hit.v, flat_cos)
+            return wp.vec4(q[0], q[1], q[2], 1.0)
+    return wp.vec4(0.0)
+
+
+@wp.func
+def ring_normal(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), twin: wp.array(dtype=wp.int32),
+                h0: int, max_ring: int) -> wp.vec4:
+    """Sum of the cross products of the faces around the vertex of half-edge ``h0`` (xyz) and the sum of their
+    lengths (w)."""
+    p = x[tri[h0]]
+    n = wp.vec3(0.0)
+    w = float(0.0)
+    h = h0
+    for _ in range(max_ring):
+        cr = wp.cross(x[tri[he_next(h)]] - p, x[tri[he_prev(h)]] - p)
+        n += cr
+        w += wp.length(cr)
+        h = twin[he_prev(h)]
+        if h == h0:
+            break
+    return wp.vec4(n[0], n[1], n[2], w)
+
+
 @wp.kernel(enable_backward=False)
 def tangential_relax(
     surface: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    normals: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tri: wp.array(dtype=wp.int32),
     twin: wp.array(dtype=wp.int32),
@@ -581,17 +668,19 @@ def tangential_relax(
     flat_cos: float,
     max_ring: int,
     out: wp.array(dtype=wp.vec3),
+    moved: wp.array(dtype=wp.float64),
 ):
     """Per vertex: move to the area-weighted centroid of its faces' centroids, tangentially (the normal
-    component of the move removed), then onto the closest point of ``surface`` (a ``wp.Mesh`` wound
-    the same way) within ``max_dist``; write the result to ``out``.
+    component of the move removed), then onto the Phong-lifted closest point of ``surface`` (a
+    ``wp.Mesh`` wound the same way, on ``points`` and ``indices``, with unit vertex ``normals``; see
+    :func:`phong_point`) within ``max_dist``; write the result to ``out``.
 
     A feature vertex (its faces' normals spread: ``|sum n_f| < flat_cos * sum |n_f|``) stays, or a tip
     or crease would be smoothed away. The move is halved up to twice, and dropped, if a face of the
     vertex would turn more than ``acos(min_cos)`` with its neighbours held fixed (unless it then
     agrees that well with the vertex normal: a near-degenerate face may turn freely into shape), or
     if the closest point lies on a face facing away from the vertex normal (the other side of a thin
-    part).
+    part). Adds the distance moved to ``moved[0]``.
     """
     v = wp.tid()
     p = x[v]
@@ -599,35 +688,30 @@ def tangential_relax(
     h0 = out_he[v]
     if h0 < 0:
         return
-    n = wp.vec3(0.0)
     g = wp.vec3(0.0)
     w = float(0.0)
     h = h0
     for _ in range(max_ring):
         q = x[tri[he_next(h)]]
         r = x[tri[he_prev(h)]]
-        cr = wp.cross(q - p, r - p)
-        area = wp.length(cr)
-        n += cr
+        area = wp.length(wp.cross(q - p, r - p))
         g += area * (p + q + r) / 3.0
         w += area
         h = twin[he_prev(h)]
         if h == h0:
             break
-    if w <= 0.0 or wp.length(n) < flat_cos * w:
+    ring = ring_normal(x, tri, twin, h0, max_ring)
+    n = wp.vec3(ring[0], ring[1], ring[2])
+    if w <= 0.0 or wp.length(n) < flat_cos * ring[3]:
         return
     n = wp.normalize(n)
     move = g / w - p
     move = move - wp.dot(move, n) * n
     step = float(1.0)
     for _attempt in range(3):
-        target = p + step * move
-        hit = wp.mesh_query_point_no_sign(surface, target, max_dist)
-        ok = int(0)
-        if hit.result:
-            if wp.dot(wp.mesh_eval_face_normal(surface, hit.face), n) > 0.0:
-                target = wp.mesh_eval_position(surface, hit.face, hit.u, hit.v)
-                ok = 1
+        found = surface_target(surface, points, indices, normals, p + step * move, n, max_dist, flat_cos)
+        target = wp.vec3(found[0], found[1], found[2])
+        ok = int(found[3])
         if ok != 0:
             h = h0
             for _ in range(max_ring):
@@ -641,58 +725,42 @@ def tangential_relax(
                     break
         if ok != 0:
             out[v] = target
+            wp.atomic_add(moved, 0, wp.float64(wp.length(target - p)))
             return
         step = 0.5 * step
 
 
 @wp.kernel(enable_backward=False)
-def face_offsets(surface: wp.uint64, x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), max_dist: float,
-                 out: wp.array(dtype=float)):
-    """Per face: signed distance of its centroid from the closest point of ``surface`` within ``max_dist``,
-    along the face's unit normal (negative below the surface), or 0 without one."""
-    f = wp.tid()
-    a = x[tri[3 * f]]
-    b = x[tri[3 * f + 1]]
-    c = x[tri[3 * f + 2]]
-    p = (a + b + c) / 3.0
-    n = wp.cross(b - a, c - a)
-    out[f] = 0.0
-    hit = wp.mesh_query_point_no_sign(surface, p, max_dist)
-    if hit.result and wp.length(n) > 0.0:
-        out[f] = wp.dot(p - wp.mesh_eval_position(surface, hit.face, hit.u, hit.v), wp.normalize(n))
-
-
-@wp.kernel(enable_backward=False)
-def straddle(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), twin: wp.array(dtype=wp.int32),
-             out_he: wp.array(dtype=wp.int32), offset: wp.array(dtype=float), max_ring: int,
-             out: wp.array(dtype=wp.vec3)):
-    """Per vertex: move along its normal by minus the area-weighted mean ``offset`` of its faces.
-
-    Vertices projected onto a curved surface make every face a chord below it on convex parts
-    (above on concave ones), and the mesh loses area; after this move the faces straddle the
-    surface, as a least-squares fit (quadric decimation's vertex placement) does.
-    """
+def project_onto(
+    surface: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    normals: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri: wp.array(dtype=wp.int32),
+    twin: wp.array(dtype=wp.int32),
+    out_he: wp.array(dtype=wp.int32),
+    max_dist: float,
+    flat_cos: float,
+    max_ring: int,
+    out: wp.array(dtype=wp.vec3),
+):
+    """Per vertex: onto the Phong-lifted closest point of ``surface`` (as :func:`tangential_relax`, without
+    the tangential move), so that vertices the last relocations left at edge midpoints lie on the
+    surface too; vertices whose closest point faces away stay."""
     v = wp.tid()
     p = x[v]
     out[v] = p
     h0 = out_he[v]
     if h0 < 0:
         return
-    n = wp.vec3(0.0)
-    s = float(0.0)
-    w = float(0.0)
-    h = h0
-    for _ in range(max_ring):
-        cr = wp.cross(x[tri[he_next(h)]] - p, x[tri[he_prev(h)]] - p)
-        area = wp.length(cr)
-        n += cr
-        s += area * offset[h // 3]
-        w += area
-        h = twin[he_prev(h)]
-        if h == h0:
-            break
-    if w > 0.0 and wp.length(n) > 0.0:
-        out[v] = p - (s / w) * wp.normalize(n)
+    ring = ring_normal(x, tri, twin, h0, max_ring)
+    n = wp.vec3(ring[0], ring[1], ring[2])
+    if wp.length(n) <= 0.0:
+        return
+    found = surface_target(surface, points, indices, normals, p, wp.normalize(n), max_dist, flat_cos)
+    if found[3] != 0.0:
+        out[v] = wp.vec3(found[0], found[1], found[2])
 
 
 @wp.kernel(enable_backward=False)
@@ -727,3 +795,96 @@ def revert_vertices(x_old: wp.array(dtype=wp.vec3), revert: wp.array(dtype=wp.in
     if revert[v] != 0:
         x_new[v] = x_old[v]
         revert[v] = 0
+
+
+@wp.kernel(enable_backward=False)
+def check_halfedges(tri: wp.array(dtype=wp.int32), twin: wp.array(dtype=wp.int32), errors: wp.array(dtype=wp.int32)):
+    """Per half-edge: count in ``errors[0]`` the ones whose twin is not an opposite half-edge of the same edge
+    pointing back (``twin[twin[h]] == h``, reversed endpoints): with none, every edge has exactly two
+    consistently wound faces."""
+    h = wp.tid()
+    t = twin[h]
+    ok = t >= 0 and t < twin.shape[0] and t != h
+    if ok:
+        ok = twin[t] == h and tri[t] == tri[he_next(h)] and tri[he_next(t)] == tri[h]
+    if not ok:
+        wp.atomic_add(errors, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def check_rings(valence: wp.array(dtype=wp.int32), errors: wp.array(dtype=wp.int32)):
+    """Per vertex: count in ``errors[1]`` the ones whose ring walk failed (no face, or no return within the
+    walk bound), and add the faces met to ``errors[2]``: on a vertex-manifold surface the walks meet every
+    half-edge once (``3 F`` in all); a vertex with two fans of faces meets only one of them."""
+    v = wp.tid()
+    n = valence[v]
+    if n <= 0:
+        wp.atomic_add(errors, 1, 1)
+    else:
+        wp.atomic_add(errors, 2, n)
+
+
+@wp.kernel(enable_backward=False)
+def face_measures(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), sliver: float, tiny: float,
+                  sums: wp.array(dtype=wp.float64), centroid: wp.array(dtype=wp.vec3d), bad: wp.array(dtype=wp.int32)):
+    """Per face: add its area to ``sums[0]``, its signed volume about the origin to ``sums[1]`` and its
+    area-weighted centroid to ``centroid[0]`` (all zeroed first, float64); count in ``bad[0]`` faces with a
+    non-finite corner and in ``bad[1]`` slivers (``2 area <= sliver * sum of squared edge lengths`` or
+    ``2 area <= tiny``), the faces Warp's closest-point queries skip."""
+    f = wp.tid()
+    a = x[tri[3 * f]]
+    b = x[tri[3 * f + 1]]
+    c = x[tri[3 * f + 2]]
+    s = a[0] + a[1] + a[2] + b[0] + b[1] + b[2] + c[0] + c[1] + c[2]
+    if not wp.isfinite(s):
+        wp.atomic_add(bad, 0, 1)
+        return
+    ad = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+    bd = wp.vec3d(wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2]))
+    cd = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2]))
+    cr = wp.cross(bd - ad, cd - ad)
+    area2 = wp.length(cr)
+    sq = wp.length_sq(bd - ad) + wp.length_sq(cd - ad) + wp.length_sq(cd - bd)
+    if area2 <= wp.float64(sliver) * sq or area2 <= wp.float64(tiny):
+        wp.atomic_add(bad, 1, 1)
+    wp.atomic_add(sums, 0, wp.float64(0.5) * area2)
+    wp.atomic_add(sums, 1, wp.dot(ad, wp.cross(bd, cd)) / wp.float64(6.0))
+    wp.atomic_add(centroid, 0, (wp.float64(0.5) * area2 / wp.float64(3.0)) * (ad + bd + cd))
+
+
+@wp.kernel(enable_backward=False)
+def owned_edges(twin: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    """Per half-edge: 1 if it stands for its edge (:func:`owns_edge`), else 0."""
+    h = wp.tid()
+    flags[h] = wp.where(owns_edge(twin, h), 1, 0)
+
+
+@wp.kernel(enable_backward=False)
+def edge_topology(tri: wp.array(dtype=wp.int32), twin: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                  edges: wp.array(dtype=wp.vec2i), interior: wp.array(dtype=wp.vec4i)):
+    """Per owning half-edge ``a -> b`` (edge ``offsets[h]``): the edge's sorted endpoints, and ``(a, b, c0, c1)``
+    with face ``(a, b, c0)`` running ``a -> b`` and face ``(b, a, c1)`` running ``b -> a``, the layout of
+    :class:`vnc_warp.mesh.EdgeTopology`."""
+    h = wp.tid()
+    if not owns_edge(twin, h):
+        return
+    i = offsets[h]
+    a = tri[h]
+    b = tri[he_next(h)]
+    edges[i] = wp.vec2i(wp.min(a, b), wp.max(a, b))
+    interior[i] = wp.vec4i(a, b, tri[he_prev(h)], tri[he_prev(twin[h])])
+
+
+@wp.kernel(enable_backward=False)
+def scale_about(x: wp.array(dtype=wp.vec3), centre: wp.vec3, factor: float):
+    """Per vertex: ``x <- centre + factor (x - centre)``."""
+    v = wp.tid()
+    x[v] = centre + factor * (x[v] - centre)
+
+
+@wp.kernel(enable_backward=False)
+def last_outgoing(tri: wp.array(dtype=wp.int32), out_he: wp.array(dtype=wp.int32)):
+    """Per half-edge: max it into ``out_he`` of the vertex it leaves (``out_he`` set to -1 first): a canonical
+    choice of each vertex's outgoing half-edge, so a surface rebuilt from its faces walks its rings the same way."""
+    h = wp.tid()
+    wp.atomic_max(out_he, tri[h], h)

@@ -184,3 +184,69 @@ def push_off_zero(grid: wp.array3d(dtype=float), min_abs: float):
     d = grid[i, j, k]
     if wp.abs(d) < min_abs:
         grid[i, j, k] = wp.where(d < 0.0, -min_abs, min_abs)
+
+
+@wp.kernel(enable_backward=False)
+def farthest_distance(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+                      out: wp.array(dtype=float)):
+    """Per point: its distance to the mesh (``max_dist`` when none is closer), maxed into ``out[0]`` (zeroed
+    first): a one-sided Hausdorff distance, capped."""
+    i = wp.tid()
+    p = points[i]
+    d = max_dist
+    q = wp.mesh_query_point_no_sign(mesh_id, p, max_dist)
+    if q.result:
+        d = wp.min(d, wp.length(p - wp.mesh_eval_position(mesh_id, q.face, q.u, q.v)))
+    wp.atomic_max(out, 0, d)
+
+
+@wp.kernel(enable_backward=False)
+def face_areas(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), out: wp.array(dtype=float)):
+    """Per face: its area."""
+    f = wp.tid()
+    a = x[tri[3 * f]]
+    out[f] = 0.5 * wp.length(wp.cross(x[tri[3 * f + 1]] - a, x[tri[3 * f + 2]] - a))
+
+
+@wp.kernel(enable_backward=False)
+def area_samples(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), cdf: wp.array(dtype=float),
+                 u: wp.array(dtype=float), points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3)):
+    """Per sample: the centroid and unit normal of the face whose slice of the inclusive area prefix sum
+    ``cdf`` holds ``u[i] * cdf[-1]`` (``u`` uniform in [0, 1)): faces drawn with probability proportional
+    to area. Faces are wound outward, so ``normals`` point out."""
+    i = wp.tid()
+    target = u[i] * cdf[cdf.shape[0] - 1]
+    lo = int(0)
+    hi = cdf.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if cdf[mid] <= target:
+            lo = mid + 1
+        else:
+            hi = mid
+    a = x[tri[3 * lo]]
+    b = x[tri[3 * lo + 1]]
+    c = x[tri[3 * lo + 2]]
+    points[i] = (a + b + c) / 3.0
+    normals[i] = wp.normalize(wp.cross(b - a, c - a))
+
+
+@wp.kernel(enable_backward=False)
+def bounds(x: wp.array(dtype=wp.vec3), lo: wp.array(dtype=float), hi: wp.array(dtype=float)):
+    """Per point: its coordinates min-ed into ``lo`` and max-ed into ``hi`` ((3,) each, set to +-inf first)."""
+    i = wp.tid()
+    p = x[i]
+    for d in range(3):
+        wp.atomic_min(lo, d, p[d])
+        wp.atomic_max(hi, d, p[d])
+
+
+@wp.kernel(enable_backward=False)
+def count_buried(mesh_id: wp.uint64, x: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), offset: float,
+                 use_winding: int, count: wp.array(dtype=wp.int32)):
+    """Per vertex: count in ``count[0]`` the ones whose point ``offset`` outside along the unit ``normals`` is
+    inside the mesh: the surface there is buried in another part of the shape, or another sheet is closer
+    than ``offset``."""
+    i = wp.tid()
+    if query_signed_distance(mesh_id, x[i] + offset * normals[i], offset, use_winding) < 0.0:
+        wp.atomic_add(count, 0, 1)

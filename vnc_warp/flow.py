@@ -12,12 +12,27 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
   ``eta`` times the vertex's own mean incident edge length. The rule is unit-free.
 * **Spatial balance**, Eq. (6): per-vertex adaptive scales ``tau_k`` from the stage's VNC-Scale curves
-  with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage.
-* **Temporal balance**: ``S_init = sum_k s(v_k | M0)``, ``phi_stage = S_init / N``; stage ``i`` iterates
-  until ``S_init - S_cur >= i * phi_stage`` and records ``t_i = S_cur / S_init`` (Eq. 7). A stage that
-  stops improving (no 0.1 % gain in ``patience`` evaluations) or reaches ``max_iters`` ends with a warning and
-  records the ``t`` it actually reached: a meshed sphere's VNC-AUC is not exactly zero.
-* **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages.
+  with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage. **Thin parts** (see
+  :data:`THIN_PARTS`): where the part around a vertex is a tube (shape factor ``rho`` = thickness along the
+  inward normal times the mean curvature at the largest scale: 1 on a tube, 2 on a ball) the part-scale excess
+  of curvature ``max(H(v_k, tau_max) - mean H(tau_max), 0)`` is turned around in Eq. (5), so the part fattens
+  toward the shape's mean curvature and merges with its neighbours instead of thinning into a thread; its
+  details are still smoothed. The correction fades out between ``rho = tube_rho`` and ``ball_rho``; balls,
+  tips, flat and concave regions follow Eq. (5) as written. It is refreshed at every evaluation of ``S``.
+* **Temporal balance**: ``S_init = sum_k s(v_k | M0)``; stage ``i`` ends at ``t_i = S_cur / S_init`` (Eq. 7)
+  within ``tolerance`` of its equidistant target ``1 - i/N``. The stage controller plans the steps to the
+  next evaluation of ``S`` from the decay rate observed so far and, when a run of steps overshoots the
+  target, searches the chord between the last state above the window and the state below it (secant steps
+  on the fraction of the chord) until ``t`` lands in the window. Exceptions, recorded per stage as
+  ``status`` and ``exception``: the **last stage** (target ``t = 0``, below the VNC-AUC of any meshed
+  sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``);
+  a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
+  merges) and thereby already took ``S`` below its window records the remeshed state with no flow step
+  (status ``remesh``); a stage that stops improving before its target (a handle pinching raises ``S``
+  until the remesh closes it) ends ``converged`` with the ``t`` it reached; ``max_iters`` likewise.
+* **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages, one
+  remesher for the whole trajectory, kept on the device; its report (path, Euler characteristic, components
+  dropped, repairs, seconds per part) is the stage record's ``remesh``.
 
 The scale range is fixed from ``M0`` for the whole trajectory so every ``S`` is measured the same way.
 """
@@ -28,6 +43,7 @@ import dataclasses
 import hashlib
 import os
 import time
+import logging
 import warnings
 from dataclasses import dataclass
 
@@ -35,15 +51,55 @@ import numpy as np
 import warp as wp
 
 from vnc_warp.kernels import flow as _k
+from vnc_warp.kernels import remesh as _kr
+from vnc_warp.kernels import sdf as _ks
 
 from ._device import get_device
-from .mesh import Mesh, MeshError, from_arrays, load_mesh
+from .mesh import Mesh, MeshError, load_mesh
 from .operators import vnc_soft
 from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
 from .trajectory import Trajectory, resume
 
 __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "reference_mean", "total_complexity",
-           "sphericity"]
+           "sphericity", "relative_thickness"]
+
+# An evaluation makes progress when S falls by more than this share below the stage's best so far.
+_PROGRESS = 1.0e-3
+
+THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
+
+Measured on human_man (5000 faces, stage 0, 16 scales; docs/flow_balance.md has the commands): on the arms
+``H - H_ref`` is +0.064 at the smallest scale and still +0.058 at the largest (0.65 m, about an arm's length),
+on the torso -0.041 and -0.040. A thin tube has a large normalized H at every scale below its length, so
+Eq. (5) moves its surface inward at every scale; the adaptive scales of Eq. (6) hardly differ there (median
+tau 0.35 on the arms, 0.32 on the torso), so the scale rule neither causes nor prevents it, and the step clamp
+only sets the pace (31 % of arm vertices at it; one step moved the arms inward by 0.14 mean edge lengths and
+the torso outward by as much). Inward motion raises a tube's curvature (its cross-section's radius shrinks):
+on a part, Eq. (5) climbs ``|H - H_ref|`` instead of descending it. The total VNC-AUC rose 15 % in the first 10
+steps (arms +7 %, legs +5 %), the arms were threads after 23 steps, and the next SDF-remesh cut them off (t
+0.72 -> 0.39 in one remesh; the base code on the full human_man: the 5th-percentile thickness ratio 0.76 at
+stage 1). Capping the inward motion per stage instead (tried: 7.5 % of the thickness) stops the threads but
+not the ascent: the stage budgets of Eq. (7) are then met only by the torso inflating into an egg that
+swallows the limbs within two stages.
+
+Sec. 3.2 states what the flow is for, "minimizing |H_soft - H_ref| -> 0", and introduces spatial balance
+against exactly this failure, "flat regions may degenerate into singularities long before complex wrinkles
+are resolved". The rule splits the deviation of Eq. (5) at a vertex into its part-scale share, the excess of
+its curvature at the largest scale over the mean there, and the rest (detail). Where the part is a tube, moving
+along the part-scale excess raises it, so that share is turned around: the part fattens toward the shape's
+mean curvature while its details are still smoothed by Eq. (5). A tube is told from a ball or a tip by its
+shape factor ``rho``, the thickness along the inward normal times the mean curvature at the largest scale
+(VNC-soft's H is ``L / (2 sqrt 3)`` times the mean curvature on a regular tessellation of edge ``L``): 1 on a
+tube (thickness 2r, curvature 1/2r), 2 on a ball, more at a tip; shrinking a ball or a tip lowers the total
+VNC-AUC (its vertices go with its area), thinning a tube does not (its VNC-AUC is about its length over L
+whatever its radius). The correction fades out between ``tube_rho`` and ``ball_rho`` and never touches
+concave regions or parts flatter than the mean (a plate's faces still move apart, concavities still fill).
+With it the total VNC-AUC falls from the first step, every stage meets its budget in a few steps, and limbs
+shorten and fatten until they merge with the body and each other: the compact abstraction of Fig. 9a.
+"""
+
+
+log = logging.getLogger(__name__)
 
 
 class FlowError(RuntimeError):
@@ -64,14 +120,24 @@ class FlowParams:
             explicit step diverges above about 12-16 (measured on Spot with the default scales); 6 keeps a
             factor of two.
         phi_fraction: Eq. (6) budget as a fraction of the stage's mean per-vertex VNC-AUC.
+        tube_rho: where the shape factor ``rho`` (thickness along the inward normal times the mean curvature
+            at the largest scale: 1 on a tube, 2 on a ball) is at most this, the part-scale excess of curvature
+            is turned around in Eq. (5) (see :data:`THIN_PARTS`) ...
+        ball_rho: ... fading out up to this ``rho``; ``tube_rho = ball_rho = 0`` is Eq. (5) as written.
+        tolerance: a stage ends when its ``t`` is within this of its target ``1 - i/N``.
         max_iters: iteration cap per stage.
+        stall_remeshes: a stage that stalls short of its target (``patience`` evaluations without progress)
+            is remeshed from its best state and goes on, at most this many times (the same topology
+            regularization as between stages; never in the last stage, whose target is out of reach).
         eval_every: evaluate ``S_cur`` at least this many iterations apart.
-        eval_max: at most this many iterations apart. In between, the next evaluation is placed about halfway
-            to the stage's budget at the decay rate observed so far (the 16-scale evaluation of ``S`` costs
-            several flow steps).
+        eval_max: at most this many iterations apart. In between, the next evaluation is placed where the
+            decay rate observed so far reaches the stage's target (the 16-scale evaluation of ``S`` costs
+            several flow steps; an overshoot is searched back on the chord).
         patience: evaluations without a 0.1 % decrease of ``S_cur`` before a stage counts as converged.
         remesh: SDF-remesh before stage 0 and between stages.
         resolution: marching-cubes grid resolution of the remesher (None: automatic).
+        allow_changes: accept a first remesh that drops components or loses thin parts (see
+            :func:`vnc_warp.sdf_remesh`); later remeshes are part of the flow and only recorded.
         scale_mode: "adaptive" (Eq. 6), "small" (every vertex at tau_min) or "large" (tau_max): Fig. 7 (c, d).
         method: "vnc" (Eq. 5), "mcf_explicit" or "mcf_implicit" (cotangent-Laplacian mean curvature flow,
             Fig. 7 (e, f)); the baselines use the same stages and records, with ``mcf_dt`` in units of the
@@ -87,12 +153,17 @@ class FlowParams:
     step_fraction: float = 0.25
     max_lambda: float = 6.0
     phi_fraction: float = 0.5
+    tube_rho: float = 1.2
+    ball_rho: float = 1.8
+    tolerance: float = 0.005
     max_iters: int = 300
+    stall_remeshes: int = 4
     eval_every: int = 1
-    eval_max: int = 8
-    patience: int = 15
+    eval_max: int = 16
+    patience: int = 8
     remesh: bool = True
     resolution: int | None = None
+    allow_changes: bool = False
     scale_mode: str = "adaptive"
     method: str = "vnc"
     mcf_dt: float | None = None
@@ -104,9 +175,13 @@ class FlowParams:
             raise ValueError(f"scale_mode must be adaptive, small or large, got {self.scale_mode!r}")
         if self.method not in ("vnc", "mcf_explicit", "mcf_implicit"):
             raise ValueError(f"method must be vnc, mcf_explicit or mcf_implicit, got {self.method!r}")
-        for name in ("step_fraction", "phi_fraction", "kappa"):
+        for name in ("step_fraction", "phi_fraction", "kappa", "tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
+        if not 0.0 <= self.tube_rho <= self.ball_rho:
+            raise ValueError(f"need 0 <= tube_rho <= ball_rho, got {self.tube_rho} and {self.ball_rho}")
+        if self.stall_remeshes < 0:
+            raise ValueError(f"stall_remeshes must be >= 0, got {self.stall_remeshes}")
         if self.max_iters < 1 or self.eval_every < 1 or self.patience < 1 or self.eval_max < self.eval_every:
             raise ValueError("max_iters, eval_every and patience must be >= 1, and eval_max >= eval_every")
 
@@ -121,10 +196,91 @@ def sphericity(mesh: Mesh) -> float:
     return float(36.0 * np.pi * mesh.volume() ** 2 / mesh.area() ** 3)
 
 
+def _device_sum(values: wp.array) -> float:
+    """``sum_k values[k]`` in float64, added in a fixed order (as :func:`reference_mean`), so that every decision
+    the stage controller takes on ``S`` repeats bit for bit on any device."""
+    partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=values.device)
+    wp.launch(_k.strided_sums, dim=partial.shape[0], inputs=[values], outputs=[partial], device=values.device)
+    return float(np.sum(partial.numpy(), dtype=np.float64))
+
+
 def total_complexity(mesh: Mesh, taus, *, kappa: float = 6.0, positions: wp.array | None = None, device=None) -> float:
     """``S = sum_k s(v_k)``: the total VNC-AUC (Eq. 4 at tau_max) of a mesh, the numerator of Eq. (7)."""
     curve = scale_curve(mesh, taus, "soft", kappa=kappa, device=device, positions=positions)
-    return float(np.sum(vnc_auc(curve).numpy(), dtype=np.float64))
+    return _device_sum(vnc_auc(curve))
+
+
+class _Surface:
+    """A closed surface's positions and corners on one device, with its ``wp.Mesh`` for ray queries."""
+
+    def __init__(self, x: wp.array, tri: wp.array):
+        self.x, self.tri = x, tri
+        self.mesh = wp.Mesh(points=x, indices=tri)
+
+    @classmethod
+    def of(cls, mesh: Mesh, device, positions: wp.array | None = None) -> _Surface:
+        x = wp.clone(positions) if positions is not None else wp.array(mesh.local_vertices, dtype=wp.vec3,
+                                                                         device=device)
+        return cls(x, wp.array(mesh.faces.reshape(-1), dtype=wp.int32, device=device))
+
+    def measures(self) -> tuple[float, float]:
+        """Area and enclosed volume (float64 sums on the device)."""
+        sums = wp.zeros(2, dtype=wp.float64, device=self.x.device)
+        centroid = wp.zeros(1, dtype=wp.vec3d, device=self.x.device)
+        bad = wp.zeros(2, dtype=wp.int32, device=self.x.device)
+        wp.launch(_kr.face_measures, dim=self.tri.shape[0] // 3, inputs=[self.x, self.tri, 0.0, 0.0],
+                  outputs=[sums, centroid, bad], device=self.x.device)
+        s = sums.numpy()
+        return float(s[0]), float(s[1])
+
+    def vertex_normals(self) -> wp.array:
+        normals = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=self.x.device)
+        wp.launch(_kr.vertex_normals, dim=self.tri.shape[0] // 3, inputs=[self.x, self.tri], outputs=[normals],
+                  device=self.x.device)
+        wp.launch(_kr.normalize_vectors, dim=normals.shape[0], inputs=[normals], device=self.x.device)
+        return normals
+
+    def span(self) -> float:
+        from .remesh import _device_bounds
+
+        lo, hi = _device_bounds(self.x)
+        return float(np.linalg.norm(hi - lo))
+
+    def vertex_thickness(self) -> wp.array:
+        """(V,) distance through the shape from each vertex along its inward normal (-1: no hit)."""
+        out = wp.empty(self.x.shape[0], dtype=wp.float32, device=self.x.device)
+        span = self.span()
+        wp.launch(_ks.inward_thickness, dim=self.x.shape[0],
+                  inputs=[self.mesh.id, self.x, self.vertex_normals(), 1e-5 * span, 2.0 * span], outputs=[out],
+                  device=self.x.device)
+        return out
+
+
+def relative_thickness(mesh: Mesh, *, percentile: float = 5.0, samples: int = 4096, device=None,
+                       positions: wp.array | None = None) -> float:
+    """How thin the thinnest parts of a closed surface are, relative to its size.
+
+    The area-weighted ``percentile`` of the distance through the shape along inward face normals
+    (``samples`` rays from area-weighted random faces, fixed seed), divided by the radius of the sphere of
+    equal area ``sqrt(A / 4 pi)``: about 2 for a sphere, 0.1 for a body with thin arms; a part thinning
+    into a thread or a fin drives it down. VNC-Flow records it per stage.
+
+    Args:
+        mesh: a closed, outward-wound :class:`~vnc_warp.mesh.Mesh`.
+        percentile: which percentile (0-100).
+        samples: number of rays.
+        device: Warp device.
+        positions: (V,) vec3 positions overriding ``mesh.vertices``.
+
+    Returns:
+        The dimensionless relative thickness.
+    """
+    from .sdf import inward_distances
+
+    surface = _Surface.of(mesh, positions.device if positions is not None else get_device(device), positions)
+    area, _ = surface.measures()
+    hits = inward_distances(surface.mesh, surface.x, surface.tri, samples, span=surface.span())
+    return float(np.percentile(hits, percentile) / np.sqrt(area / (4.0 * np.pi)))
 
 
 def _mesh_digest(mesh: Mesh) -> str:
@@ -137,7 +293,7 @@ def _local_edge_length(mesh: Mesh) -> np.ndarray:
     """(V,) float32 mean length of each vertex's incident edges, in mesh units (float64 sums in edge order on the
     host, so every device clamps the moves of Eq. (5) alike)."""
     e = mesh.topology.edges
-    v = mesh.vertices.astype(np.float64)
+    v = mesh.local_vertices.astype(np.float64)
     length = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)
     V = mesh.num_vertices
     total = np.bincount(e[:, 0], length, V) + np.bincount(e[:, 1], length, V)
@@ -218,34 +374,82 @@ def flow_steps(
     return states
 
 
-class _Stepper:
-    """One stage's iteration: Eq. (5) (VNC) or a cotangent-Laplacian MCF baseline."""
+class _Engine:
+    """The VNC operator as one stage of VNC-Flow calls it: Eq. (3) at per-vertex scales for the step, and the
+    VNC-Scale curves (Eq. 4) for ``S``, both at positions given on the device. Every operator call of the
+    stage loop goes through here (so a faster engine can take its place)."""
 
-    def __init__(self, mesh: Mesh, taus: np.ndarray, p: FlowParams, device):
+    def __init__(self, mesh: Mesh, taus: np.ndarray, kappa: float):
+        self.mesh, self.taus, self.kappa = mesh, taus, kappa
+
+    def soft(self, x: wp.array, tau: wp.array) -> tuple[wp.array, wp.array]:
+        return vnc_soft(self.mesh, tau, kappa=self.kappa, positions=x)
+
+    def curve(self, x: wp.array):
+        return scale_curve(self.mesh, self.taus, "soft", kappa=self.kappa, positions=x)
+
+    def complexity(self, x: wp.array) -> float:
+        return _device_sum(vnc_auc(self.curve(x)))
+
+
+def _quantile90(values: wp.array, ref: wp.array) -> float:
+    """The 90th percentile of ``|values - ref[0]|`` to 1/1024 of their range, from a device histogram."""
+    dev = values.device
+    top = wp.zeros(1, dtype=wp.float32, device=dev)
+    wp.launch(_k.max_deviation, dim=values.shape[0], inputs=[values, ref], outputs=[top], device=dev)
+    counts = wp.zeros(1024, dtype=wp.int32, device=dev)
+    wp.launch(_k.deviation_histogram, dim=values.shape[0], inputs=[values, ref, top], outputs=[counts], device=dev)
+    c = np.cumsum(counts.numpy())
+    return float(top.numpy()[0]) * (int(np.searchsorted(c, 0.9 * c[-1])) + 1) / counts.shape[0]
+
+
+class _Stepper:
+    """One stage's iteration: Eq. (5) (VNC) or a cotangent-Laplacian MCF baseline, on device positions ``x``."""
+
+    def __init__(self, mesh: Mesh, taus: np.ndarray, p: FlowParams, device, positions: wp.array | None = None):
         self.mesh, self.p, self.device = mesh, p, device
-        V = mesh.num_vertices
-        self.x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
+        self.surface = _Surface.of(mesh, device, positions)
+        self.x = self.surface.x
         self.x_next = wp.empty_like(self.x)
         self.ref = wp.zeros(1, dtype=wp.float32, device=device)
+        self.engine = _Engine(mesh, taus, p.kappa)
         self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
-        self.edge = mesh.mean_edge_length
         self.lam = None
+        self.S_start = None
+        V = mesh.num_vertices
+        local = _local_edge_length(mesh)
+        self.edge = mesh.mean_edge_length
         if p.method == "vnc":
-            curve = scale_curve(mesh, taus, "soft", kappa=p.kappa, device=device)
+            curve = self.engine.curve(self.x)
+            s = vnc_auc(curve)
+            self.S_start = _device_sum(s)
             if p.scale_mode == "adaptive":
-                s = vnc_auc(curve).numpy()
-                self.tau = adaptive_scale(curve, taus, p.phi_fraction * float(s.mean()))
+                self.tau = adaptive_scale(curve, taus, p.phi_fraction * self.S_start / V)
             else:
                 t = taus[0] if p.scale_mode == "small" else taus[-1]
-                self.tau = wp.array(np.full(V, t, dtype=np.float32), device=device)
-            self.max_move = wp.array(p.step_fraction * _local_edge_length(mesh), dtype=wp.float32, device=device)
+                self.tau = wp.full(V, np.float32(t), dtype=wp.float32, device=device)
+            self.max_move = wp.array(p.step_fraction * local, dtype=wp.float32, device=device)
+            self.part = wp.zeros(V, dtype=wp.float32, device=device)
+            self._thin_parts(curve)
         else:
             self._laplacian()
+
+    def _thin_parts(self, curve) -> None:
+        """The thin-part correction of the current state (:data:`THIN_PARTS`), from its scale curves: kept up
+        to date at every evaluation of ``S``, since a part that fattens stops needing it."""
+        p = self.p
+        if p.ball_rho <= 0.0:
+            return
+        surface = _Surface(self.x, self.surface.tri)
+        wp.launch(_k.thin_part_correction, dim=self.mesh.num_vertices,
+                  inputs=[surface.vertex_thickness(), curve.H, curve.mean, curve.H.shape[0] - 1, float(self.edge),
+                          float(p.tube_rho), float(p.ball_rho)],
+                  outputs=[self.part], device=self.device)
 
     def _laplacian(self):
         import scipy.sparse as sp
 
-        v = self.mesh.vertices.astype(np.float64)
+        v = self.mesh.local_vertices.astype(np.float64)
         f = self.mesh.faces
         V = v.shape[0]
         rows, cols, vals = [], [], []
@@ -273,13 +477,14 @@ class _Stepper:
     def step(self) -> None:
         p = self.p
         if p.method == "vnc":
-            H, n = vnc_soft(self.mesh, self.tau, kappa=p.kappa, positions=self.x)
+            H, n = self.engine.soft(self.x, self.tau)
             reference_mean(H, self.ref, partial=self.partial)
-            if self.lam is None:
-                q = float(np.quantile(np.abs(H.numpy() - self.ref.numpy()[0]), 0.9))
-                self.lam = min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
             V = self.mesh.num_vertices
-            wp.launch(_k.flow_step, dim=V, inputs=[self.x, H, n, self.ref, self.lam, self.max_move],
+            if self.lam is None:
+                q = _quantile90(H, self.ref)
+                self.lam = min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
+            wp.launch(_k.balanced_step, dim=V,
+                      inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part],
                       outputs=[self.x_next], device=self.device)
             self.x, self.x_next = self.x_next, self.x
             return
@@ -290,14 +495,38 @@ class _Stepper:
             v = np.stack([self.solve(self.M @ v[:, d]) for d in range(3)], axis=1)
         self.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=self.device)
 
+    def complexity(self) -> float:
+        """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
+        if self.p.method != "vnc":
+            return self.engine.complexity(self.x)
+        curve = self.engine.curve(self.x)
+        self._thin_parts(curve)
+        return _device_sum(vnc_auc(curve))
+
     def current(self) -> Mesh:
-        return Mesh(self.x.numpy(), self.mesh.faces, self.mesh.topology, self.mesh.name)
+        """The current state in absolute coordinates (the device positions are relative to ``mesh.origin``)."""
+        # a copy: on the CPU device .numpy() is a view of the array, which later steps overwrite
+        local = self.x.numpy().copy()
+        origin = self.mesh.origin
+        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
+        mesh = Mesh(vertices, self.mesh.faces, self.mesh.topology, self.mesh.name, origin=origin)
+        mesh._cache["local_vertices"] = (vertices, local)
+        return mesh
 
 
-def _as_saved(mesh: Mesh) -> Mesh:
+def _as_saved(mesh: Mesh, origin: np.ndarray | None = None) -> Mesh:
     """The state as a resumed run reads it back: float32 vertices with no float64 history (the stage PLY holds
-    float32), so that a run resumed from its files continues bit-identically to one never interrupted."""
-    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), mesh.faces, mesh.topology, mesh.name)
+    float32), so that a run resumed from its files continues bit-identically to one never interrupted. With
+    ``origin``, in the trajectory's frame: its :attr:`~vnc_warp.mesh.Mesh.local_vertices`, what the stages compute
+    on, are taken relative to ``origin`` (float64), the same for a state just made and one read from disk."""
+    from .mesh import _build_topology
+
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    # the edges in the order load_mesh gives them (the remesher builds them on the device in another order, and
+    # the order of the sums over edges shows in the last bits)
+    topology, _ = _build_topology(faces)
+    return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), faces, topology, mesh.name,
+                origin=None if origin is None else np.asarray(origin, np.float64))
 
 
 def _check_state(mesh: Mesh) -> str | None:
@@ -326,7 +555,9 @@ def flow(
     Args:
         mesh: input mesh: a :class:`Mesh`, a ``trimesh.Trimesh``, a ``(V, F)`` pair (NumPy or torch) or a path;
             it must be watertight unless ``remesh`` is on (the SDF remesher closes holes with the winding-number
-            sign).
+            sign). With ``remesh`` on, non-manifold edges and vertices, duplicate faces and several components are
+            repaired by the first remesh, which says what it repaired (the ``vnc_warp`` logger) and records it
+            (``info["repairs"]`` and stage 0's ``remesh`` record).
         stages: number of stages N.
         faces: face count of the remeshed states (None: the input's).
         device: Warp device.
@@ -340,56 +571,92 @@ def flow(
         The :class:`Trajectory` (N+1 meshes unless a baseline collapsed first).
 
     Raises:
-        MeshError: the input is not watertight and ``remesh=False``, or is otherwise invalid.
+        MeshError: the input is not watertight and ``remesh=False``, or is otherwise invalid, or its first
+            remesh would not be a faithful surface (pass ``allow_changes=True`` to accept it).
         FlowError: a VNC-Flow state failed validity (a bug).
         TrajectoryError: ``out_dir`` holds a different run, stage files it does not own, or damaged files.
         OSError: ``out_dir`` cannot be created or written to.
     """
-    from .remesh import sdf_remesh
+    from .remesh import RemeshWarning, _Remesher
 
     p = FlowParams(stages=stages, faces=faces, **params)
     device = get_device(device)
-    src = load_mesh(mesh)
-    if not p.remesh and not src.is_watertight:
-        raise MeshError(f"{src.name}: not watertight ({src.topology.boundary.shape[0]} boundary edges); "
-                        "VNC-Flow needs a closed surface: enable remesh (SDF remeshing closes it)")
-    info = {"params": _params_key(p), "source": src.name, "source_digest": _mesh_digest(src),
-            "version": _version(), "device": str(device)}
+    remesher = _Remesher(faces=p.faces, resolution=p.resolution, device=device, allow_changes=p.allow_changes,
+                         warn=False) if p.remesh else None
+    if remesher is not None:
+        from .remesh import _read_source
+
+        src = _read_source(mesh)
+        name, digest = src.name, _digest_arrays(src.v, src.f)
+    else:
+        src = load_mesh(mesh)
+        if not src.is_watertight:
+            raise MeshError(f"{src.name}: not watertight ({src.topology.boundary.shape[0]} boundary edges); "
+                            "VNC-Flow needs a closed surface: enable remesh (SDF remeshing closes it)")
+        name, digest = src.name, _mesh_digest(src)
+    info = {"params": _params_key(p), "source": name, "source_digest": digest, "version": _version(),
+            "device": str(device)}
     traj = resume(out_dir, info) if out_dir is not None else None
     t_start = time.perf_counter()
     if traj is None:
-        m0 = _as_saved(sdf_remesh(src, faces=p.faces, resolution=p.resolution, device=device) if p.remesh else src)
+        rec = {"index": 0, "t": 1.0, "file": "stage_000.ply", "iterations": 0, "status": "input"}
+        if remesher is not None:
+            m0, report = remesher(src)
+            rec["remesh"] = report.to_dict()
+            if report.changes:
+                message = f"VNC-Flow {name}: the first remesh " + "; ".join(report.changes)
+                if report.lost_area or report.dropped_components or "topology changed" in message:
+                    warnings.warn(message, RemeshWarning, stacklevel=2)
+                else:
+                    log.warning(message)
+            info.update(repairs=report.repairs, remesh_spacing=report.spacing, remesh_changes=report.changes)
+        else:
+            m0 = src
+        m0 = _as_saved(m0)
         taus = default_scales(m0, p.num_scales)
         S_init = total_complexity(m0, taus, kappa=p.kappa, device=device)
         if not S_init > 0:
-            raise FlowError(f"{src.name}: total VNC-AUC is {S_init}; nothing to flow")
+            raise FlowError(f"{name}: total VNC-AUC is {S_init}; nothing to flow")
         info.update(taus=taus.tolist(), S_init=S_init, phi_stage=S_init / p.stages)
-        rec = {"index": 0, "t": 1.0, "S": S_init, "file": "stage_000.ply", "iterations": 0,
-               "seconds": time.perf_counter() - t_start, "sphericity": sphericity(m0), "vertices": m0.num_vertices,
-               "faces": m0.num_faces, "euler": _euler(m0), "status": "input"}
+        rec.update(S=S_init, seconds=time.perf_counter() - t_start, **_facts(m0, device))
         traj = Trajectory([m0], np.array([1.0]), [rec], info)
         if out_dir is not None:
             traj.save(out_dir)
+    # one frame for the whole trajectory: stage 0's centre, taken from its float32 vertices as stored
+    origin = _as_saved(traj.meshes[0]).origin
+    if remesher is not None:
+        remesher.adopt(_as_saved(traj.meshes[-1], origin), traj.info["remesh_spacing"], name)
     taus = np.asarray(traj.info["taus"])
-    S_init, phi_stage = traj.info["S_init"], traj.info["phi_stage"]
+    S_init = traj.info["S_init"]
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=p.stages, initial=len(traj.meshes) - 1, desc=f"VNC-Flow {src.name}", unit="stage")
+        bar = tqdm(total=p.stages, initial=len(traj.meshes) - 1, desc=f"VNC-Flow {name}", unit="stage")
     try:
         while len(traj.meshes) <= p.stages and traj.records[-1]["status"] != "collapsed":
             i = len(traj.meshes)
             t0 = time.perf_counter()
+            # the state as stored, so that a resumed run goes on from exactly what an uninterrupted one does
             prev = traj.meshes[-1]
-            cur = sdf_remesh(prev, faces=p.faces or traj.meshes[0].num_faces, resolution=p.resolution,
-                             device=device) if (p.remesh and i > 1) else prev
-            rec = _run_stage(cur, i, taus, S_init, phi_stage, p, device, bar)
-            state = _as_saved(rec.pop("_mesh"))
+            if not np.array_equal(prev.origin, origin):  # read from disk: into the trajectory's frame
+                prev = _as_saved(prev, origin)
+            rec = {"index": i}
+            if remesher is not None and i > 1:
+                cur, report = remesher(positions=wp.array(prev.local_vertices, dtype=wp.vec3, device=device))
+                rec["remesh"] = report.to_dict()
+            else:
+                cur = prev
+            state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
+            state = _as_saved(state, origin)
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
+            last = traj.records[-1]
+            rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
             traj.meshes.append(state)
             traj.records.append(rec)
             traj.t = np.append(traj.t, rec["t"])
+            if rec.get("exception"):
+                warnings.warn(f"VNC-Flow stage {i}: {rec['exception']} ({name})", stacklevel=2)
             if out_dir is not None:
                 traj.save(out_dir)
             if bar is not None:
@@ -398,62 +665,160 @@ def flow(
     finally:
         if bar is not None:
             bar.close()
+    problem = _check_state(traj.meshes[-1])
+    if problem:
+        raise FlowError(f"VNC-Flow stage {len(traj.meshes) - 1} produced an invalid surface ({problem}); this is "
+                        "a bug, please report it")
     return traj
 
 
-def _run_stage(mesh: Mesh, i: int, taus, S_init: float, phi_stage: float, p: FlowParams, device, bar) -> dict:
-    target = S_init - i * phi_stage
+def _digest_arrays(v: np.ndarray, f: np.ndarray) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(v, dtype=np.float32).tobytes())
+    h.update(np.ascontiguousarray(f, dtype=np.int32).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
+    """Per-stage facts of a state, from the device: sphericity, relative thickness, counts, Euler."""
+    surface = _Surface.of(mesh, device, positions)
+    area, volume = surface.measures()
+    from .sdf import inward_distances
+
+    hits = inward_distances(surface.mesh, surface.x, surface.tri, 4096, span=surface.span())
+    return {"sphericity": float(36.0 * np.pi * volume**2 / area**3),
+            "thickness": float(np.percentile(hits, 5.0) / np.sqrt(area / (4.0 * np.pi))),
+            "vertices": mesh.num_vertices, "faces": mesh.num_faces,
+            "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
+
+
+def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None):
+    """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
+    ``1 - i/N`` (see the module docstring); fills ``rec`` and returns the state and its device positions. A stage
+    that stalls is remeshed on the way (``remesher``, if any; ``stall_remeshes``)."""
+    from .remesh import _Clock
+
+    parts: dict = {}
+    clock = _Clock(device, parts)
+    final = i == p.stages
+    target = S_init * (1.0 - i / p.stages)
+    tol = p.tolerance * S_init
     stepper = _Stepper(mesh, taus, p, device)
-    S_cur = ref = best = total_complexity(mesh, taus, kappa=p.kappa, device=device)
-    stale, it, status = 0, 0, "budget"
-    last_valid, best_x = mesh, None
-    history = [[0, S_cur]]
-    next_eval = p.eval_every
-    while S_cur > target:
+    S_a = stepper.S_start if stepper.S_start is not None else stepper.complexity()
+    clock.lap("setup")
+    history = [[0, S_a]]
+    it, it_a, evaluations, stale, status = 0, 0, 1, 0, None
+    x_a = wp.clone(stepper.x)
+    last_valid = mesh
+    rate = None
+    since, within, ahead = 0, [], p.eval_every // 2
+    if not final and S_a <= target + tol:
+        status = "remesh"
+    while status is None:
         if it >= p.max_iters:
             status = "max_iters"
             break
-        stepper.step()
-        it += 1
-        if it < next_eval:
-            continue
+        # steps to the next evaluation: to where the observed decay rate reaches the target; without a decay
+        # (S rose), twice as many as last time
+        ahead = 2 * ahead if rate is None else int(np.ceil((S_a - target) / rate))
+        ahead = max(p.eval_every, min(ahead, p.eval_max))
+        for _ in range(min(ahead, p.max_iters - it)):
+            stepper.step()
+            it += 1
+        clock.lap("steps")
         if p.method != "vnc":
             if _check_state(stepper.current()):
                 status = "collapsed"
                 break
             last_valid = stepper.current()
-        S_prev, S_cur = S_cur, total_complexity(mesh, taus, kappa=p.kappa, positions=stepper.x, device=device)
-        rate = (S_prev - S_cur) / (it - history[-1][0])
-        history.append([it, S_cur])
-        # the next evaluation lands about halfway to the budget at the observed decay rate
-        ahead = int(0.5 * (S_cur - target) / rate) if rate > 0 else 0
-        next_eval = it + max(p.eval_every, min(ahead, p.eval_max))
+        S_b = stepper.complexity()
+        evaluations += 1
+        clock.lap("evaluations")
+        history.append([it, S_b])
         if bar is not None:
-            bar.set_postfix(stage=i, it=it, t=f"{S_cur / S_init:.3f}")
-        if S_cur < best:
-            best, best_x = S_cur, wp.clone(stepper.x)
-        if S_cur < ref * (1.0 - 1e-3):
-            ref, stale = S_cur, 0
-        else:
-            stale += 1
-            if stale >= p.patience:
-                status = "converged"
-                break
-    if status in ("max_iters", "converged") and best_x is not None and best < S_cur:
-        stepper.x, S_cur = best_x, best  # a stage that cannot meet its budget keeps its best state
-    state = stepper.current()
+            bar.set_postfix(stage=i, it=it, t=f"{S_b / S_init:.3f}")
+        if S_b > target + tol:
+            rate = (S_a - S_b) / (it - it_a) if S_b < S_a else None
+            # S need not fall at every step (a remeshed state is re-smoothed first): only a run of
+            # evaluations without a new low counts as a stall
+            stale = stale + 1 if S_b > S_a * (1.0 - _PROGRESS) else 0
+            if S_b < S_a:
+                wp.copy(x_a, stepper.x)
+                S_a, it_a = S_b, it
+            if stale >= p.patience and it - since >= 4 * p.eval_max:
+                if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
+                    status = "final" if final else "converged"
+                    continue
+                # a stalled stage is remeshed from its best state and goes on (a state far from a regular
+                # tessellation stalls: the remains of a bunny's ears folded, a dumbbell's neck settled)
+                mesh, report = remesher(positions=x_a)
+                within.append(report.to_dict())
+                stepper = _Stepper(mesh, taus, p, device)
+                S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
+                x_a = wp.clone(stepper.x)
+                history.append([it, S_a])
+                clock.lap("remesh")
+            continue
+        if S_b < target - tol:
+            S_b, found = _search_chord(stepper, x_a, S_a, S_b, target, tol, history, it_a, it)
+            evaluations += found
+            clock.lap("evaluations")
+        status = "budget"
+        S_a = S_b
+    if status in ("max_iters", "converged", "final"):
+        # a stage that cannot go on keeps its best state
+        wp.copy(stepper.x, x_a)
     if status == "collapsed":
         state = last_valid
-        S_cur = total_complexity(state, taus, kappa=p.kappa, device=device)
-    problem = _check_state(state)
-    if problem:
-        raise FlowError(f"VNC-Flow stage {i} produced an invalid surface ({problem}); this is a bug, please report it")
-    if status in ("max_iters", "converged"):
-        warnings.warn(f"VNC-Flow stage {i}: {status} after {it} iterations at t = {S_cur / S_init:.4f} "
-                      f"(budget t = {max(target, 0.0) / S_init:.4f}); recording the t reached", stacklevel=3)
-    return {"index": i, "t": S_cur / S_init, "S": S_cur, "target_t": max(target, 0.0) / S_init, "iterations": it,
-            "status": status, "sphericity": sphericity(state), "vertices": state.num_vertices,
-            "faces": state.num_faces, "euler": _euler(state), "history": history, "_mesh": state}
+        S_a = total_complexity(state, taus, kappa=p.kappa, device=device)
+    else:
+        state = stepper.current()
+    exception = None
+    remesh = rec.get("remesh")
+    if remesh and remesh["euler"] != remesh["euler_in"]:
+        exception = (f"the remesh changed the topology (Euler characteristic {remesh['euler_in']} -> "
+                     f"{remesh['euler']}: {remesh['why_level_set']})")
+    if status == "remesh":
+        exception = (exception or "the remesh") + f" took t to {S_a / S_init:.4f}, into or below this stage's window"
+    elif status == "final":
+        exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
+                     f"decreasing, at t = {S_a / S_init:.4f}")
+    elif status in ("max_iters", "converged"):
+        exception = (f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target "
+                     f"{max(target, 0.0) / S_init:.4f}); recording the t reached")
+    rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
+               status=status, exception=exception, history=history, remeshes_within=within,
+               **_facts(state, device, None if status == "collapsed" else stepper.x))
+    clock.lap("record")
+    rec["parts"] = parts
+    return state, stepper.x
+
+
+def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, target: float, tol: float,
+                  history: list, it_a: int, it_b: int) -> tuple[float, int]:
+    """Land ``S`` in ``[target - tol, target + tol]`` on the chord from ``x_a`` (``S_a`` above the window) to the
+    current state (``S_b`` below it): secant steps on the chord fraction, each bracket kept. Leaves the state
+    found in ``stepper.x``; returns its ``S`` and the evaluations made."""
+    x_b = wp.clone(stepper.x)
+    lo, hi, S_lo, S_hi = 0.0, 1.0, S_a, S_b
+    best, best_S = 1.0, S_b
+    for k in range(1, 9):
+        theta = lo + (S_lo - target) / (S_lo - S_hi) * (hi - lo)
+        theta = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
+        wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(theta)], outputs=[stepper.x],
+                  device=x_b.device)
+        S = stepper.complexity()
+        history.append([it_a + theta * (it_b - it_a), S])
+        if abs(S - target) < abs(best_S - target):
+            best, best_S = theta, S
+        if abs(S - target) <= tol:
+            return S, k
+        if S > target:
+            lo, S_lo = theta, S
+        else:
+            hi, S_hi = theta, S
+    wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(best)], outputs=[stepper.x],
+              device=x_b.device)
+    return best_S, 8
 
 
 def _version() -> str:

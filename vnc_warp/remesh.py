@@ -1,24 +1,53 @@
 """SDF-remesh: the topology regularization of VNC-Flow (paper Sec. 3.2 (3), Algorithm 1 lines 2 and 7).
 
-``sdf_remesh`` rebuilds a mesh as the zero level set of its signed distance: Warp mesh queries
-(winding-number sign, so scans with holes still close) on a narrow-band grid, marching cubes, the
-largest connected component, quadric decimation back to the face count, an isotropic
-regularization on the marching-cubes surface, and a scale about the centroid that restores the
-surface area. Every output passes :func:`validate_surface`, the prerequisites of the VNC operator:
-watertight, edge- and vertex-manifold, consistently and outwardly wound, finite, no degenerate faces.
+``sdf_remesh`` returns a clean closed surface of a mesh's signed distance field: watertight, edge- and
+vertex-manifold, consistently and outwardly wound, finite, without degenerate faces (the VNC operator's
+prerequisites, :func:`validate_surface`), with the face count asked for and the input's surface area. The
+zero level set of the signed distance (Warp mesh queries with the winding-number sign, so scans with holes
+close) is sampled on a narrow-band grid of spacing ``h``, and one of two surfaces is tessellated:
 
-Why the regularization: VNC-soft (Eq. 3) is a length-weighted mean of dihedral angles, and a
-dihedral angle grows with the edge length (about ``L * kappa`` on a surface of curvature ``kappa``),
-so on a mesh whose edge lengths vary, H varies with them and Eq. (4) counts that as shape
-complexity. Quadric decimation is curvature-adaptive (edge lengths vary by a factor of several):
-on a remeshed sphere the total VNC-AUC was 4.5x that of an icosphere, and remeshing between VNC-Flow
-stages made the normalized time of Eq. (7) jump back up. The regularization makes the edge lengths
-nearly uniform (the paper's "regularizes triangle areas, mitigating VNC-soft/hard discrepancies on
-irregular tessellations").
+* **The input's own surface** when it is already that level set: a closed manifold with the face count
+  asked for, whose level set at spacing ``h`` has the same Euler characteristic and lies within ``h`` of it
+  both ways (nothing to join, split or drop at that resolution). It is re-tessellated in place by an
+  isotropic regularization projected back onto itself. This is the path of every stage transition of
+  VNC-Flow whose state needs no topology change: no marching cubes surface, no decimation and no host pass
+  over the mesh; all of it runs as Warp kernels on the state's device.
+* **The marching-cubes surface** of the level set otherwise (the first remesh of a raw input, a face count
+  to change, a state whose parts touch, pinch or intersect): marching cubes, connected components,
+  quadric decimation (fast-simplification) to the face count, and the same regularization projected onto
+  the marching-cubes surface.
+
+Where detail went (measured with the total VNC-AUC ``S`` of Eq. (4) summed over vertices, 16 scales, at
+the input's face count on CPU; see ``docs/flow_balance.md``): remeshing an already remeshed surface through
+marching cubes moved ``S`` by -2.2 / -3.7 % (human_man), -2.1 / -1.3 % (bunny), +4.1 / -5.8 % (torus) and
+-10.7 % (FAUST 025: marching cubes at spacing ``h`` broke the finger tips off, they were dropped as small
+components), up to 2 % more from a face count that was only matched within 2 % (``S`` is a sum over
+vertices), all of it compounding over 32 stages. The grid (features below ``h`` are rounded off or break
+up), the decimation (it keeps a face-count budget, not the shape) and relaxation projected onto the
+marching-cubes surface instead of the true one each took their share. Re-tessellating the surface itself
+keeps the vertex count exactly and projects onto the surface itself: ``S`` moves by 0.03-0.2 %.
+
+Why the regularization: VNC-soft (Eq. 3) is a length-weighted mean of dihedral angles, and a dihedral angle
+grows with the edge length (about ``L * kappa`` on a surface of curvature ``kappa``), so on a mesh whose edge
+lengths vary, H varies with them and Eq. (4) counts that as shape complexity. Quadric decimation is
+curvature-adaptive (edge lengths vary by a factor of several): on a remeshed sphere the total VNC-AUC was
+4.5x that of an icosphere. The regularization makes the edge lengths nearly uniform (the paper's
+"regularizes triangle areas, mitigating VNC-soft/hard discrepancies on irregular tessellations").
+
+Nothing is dropped or changed without a word: every call can return a :class:`RemeshReport` (what was
+repaired in the input, which path ran, components dropped and their share of the area, the Euler
+characteristic before and after, the area scale, seconds per part); a result that drops or loses more than
+1 % of the surface is refused unless ``allow_changes=True``, and other changes (a new topology, repaired
+input) are warned about with a :class:`RemeshWarning`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,10 +56,10 @@ import warp as wp
 from vnc_warp._device import get_device
 from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _k
-from vnc_warp.mesh import Mesh, MeshError, from_arrays, load_mesh
-from vnc_warp.sdf import choose_band_factor, sample_grid, sign_flag, warp_mesh
+from vnc_warp.mesh import EdgeTopology, Mesh, MeshError, load_mesh
+from vnc_warp.sdf import choose_band_factor, inward_distances, sample_grid, sign_flag, surface_samples
 
-__all__ = ["sdf_remesh", "validate_surface"]
+__all__ = ["sdf_remesh", "validate_surface", "RemeshReport", "RemeshWarning"]
 
 # Marching-cubes triangles per (area / spacing^2) (2.80-2.95 measured on spot, armadillo and the open
 # bunny; skimage's Lewiner MC and Warp's MC give the same count).
@@ -62,8 +91,38 @@ _MIN_ABS_SDF = 1.0e-3
 # SDF is zero and marching cubes emits zero-area triangles.
 _GRIDS = (((0.31, 0.17, 0.43), 1.0), ((0.62, 0.84, 0.29), 1.0), ((0.77, 0.53, 0.61), 1.5))
 _AGGRESSIVENESS = (7.0, 5.0, 3.0)
-# Isotropic regularization (see _Regularizer): edges shorter / longer than these fractions of the
-# target length are collapsed / split (the thresholds of Botsch and Kobbelt's isotropic remeshing), ...
+# The input's own surface is its level set when both have one Euler characteristic, the level set lies
+# within this many cells of the surface (nothing was added: no union of parts that touch or intersect;
+# marching cubes cuts sharp corners by up to about half a cell) ...
+_AGREE_CELLS = 1.0
+# ... and no vertex's point this many cells out along its normal is inside the shape (no part buried in
+# another: a self-intersection; sheets merely close together are the level set's business: it joins them
+# when its Euler characteristic says so, and a narrow gap it keeps must not send every call down the
+# marching-cubes path, as penguin's flipper did at 0.25 cells). Distances the other way are not asked for: the
+# surface may reach past its level set at tips thinner than the grid, which marching cubes cuts short (1.8
+# cells at human_man's finger tips, 3.2 at FAUST's).
+_BURIED_CELLS = 0.02
+# A handful of buried vertices (at most this share) is a fold at a bridge thinner than the grid that marching
+# cubes itself pinches (penguin's flipper: 2-6 of 3360 after every level-set pass), not a part inside another.
+_BURIED_SHARE = 0.003
+# Level-set components other than the largest that hold less than this share of its area in all are specks
+# off tips thinner than the grid, not a topology change of the surface.
+_SPECKS = 1.0e-3
+# At most this many further level-set passes on a level-set result that disagrees with its own level set.
+_TOPOLOGY_PASSES = 3
+# Input surface farther than this many edge lengths of the result from it counts as lost (a part thinner
+# than the grid broke up or vanished; nearer detail is what any tessellation at that face count rounds
+# off); a level-set component that is not kept counts as dropped.
+_LOST_EDGES = 2.0
+# The marching-cubes surface's area is within this share of the input's when nothing broke up (chords
+# under a curved surface); beyond it, the kept part is not scaled up to the input's area.
+_CHORD_LOSS = 0.05
+# Refused unless allow_changes: more than this share of the input's area lost, or of the level set's
+# area dropped with its other components.
+_MAX_LOST = 0.01
+# Isotropic regularization (see _HalfEdgeSurface.regularize): edges shorter / longer than these fractions
+# of the target length are collapsed / split (the thresholds of Botsch and Kobbelt's isotropic
+# remeshing), ...
 _SHORT_EDGE = 0.8
 _LONG_EDGE = 4.0 / 3.0
 # ... a collapse never makes a vertex of more edges than this, ...
@@ -86,9 +145,90 @@ _MAX_RING = 64
 _NO_LOCK = 2**31 - 1
 # Flips draw their priorities from another stream than relocations.
 _FLIP_SEED = 1 << 20
+# A regularization that settles runs until one relaxation sweep moves vertices by less than this many edge
+# lengths on average (the torus's VNC-AUC then changes by < 0.05 % per 48 further iterations), checked every
+# _SETTLE_CHUNK iterations, at most _MAX_SETTLE iterations.
+_SETTLED = 1.0e-4
+_SETTLE_RATE = 0.85
+_SETTLE_CHUNK = 24
+_MAX_SETTLE = 2400
 # Relaxation moves that fold or crease an edge (neighbours moving at once) are undone; a second pass
 # catches the rare edge creased by the first undo.
 _REVERT_PASSES = 2
+# Problems of an input that the level set repairs (the messages of vnc_warp.mesh.from_arrays).
+_REPAIRABLE = ("non-manifold", "degenerate face", "inconsistent winding")
+
+
+class RemeshWarning(UserWarning):
+    """:func:`sdf_remesh` repaired its input or changed the surface's topology; the message says what."""
+
+
+@dataclass
+class RemeshReport:
+    """What one :func:`sdf_remesh` call did; ``to_dict()`` is what VNC-Flow records per stage.
+
+    Attributes:
+        method: ``"surface"`` (the input's own surface, re-tessellated) or ``"level_set"`` (the
+            marching-cubes surface).
+        spacing: grid spacing ``h`` of the level set (mesh units).
+        faces_in, faces, vertices: face count of the input, face and vertex counts of the result.
+        euler_in: Euler characteristic V - E + F of the input (None when it is not edge-manifold).
+        euler: Euler characteristic of the result (2 - 2 genus).
+        components_in: connected components of the input's faces.
+        components_level_set: components of the marching-cubes surface (None on the surface path).
+        dropped_components: level-set components not kept (all but the largest).
+        dropped_area: their share of the level set's area.
+        lost_area: share of the input's area farther than 2 h from the result (parts that broke up or
+            vanished at spacing ``h``).
+        area_scale: linear factor of the final scaling to the kept area (1 = none).
+        why_level_set: why the input's own surface was not used (None on the surface path).
+        topology_passes: further level-set passes until the result agreed with its own level set.
+        repairs: counts of what was wrong with the input and repaired (``non_manifold_edges``,
+            ``non_manifold_vertices``, ``duplicate_faces``, ``degenerate_faces``, ``reoriented_faces``,
+            ``boundary_edges``, ``components``); empty for a valid closed input.
+        changes: one sentence per repair or change, as warned.
+        seconds: wall seconds per part: ``input``, ``sdf``, ``marching_cubes``, ``decimation``,
+            ``regularize``, ``checks`` (device work synchronized at each boundary).
+    """
+
+    method: str
+    spacing: float
+    faces_in: int
+    faces: int = 0
+    vertices: int = 0
+    euler_in: int | None = None
+    euler: int = 0
+    components_in: int = 1
+    components_level_set: int | None = None
+    dropped_components: int = 0
+    dropped_area: float = 0.0
+    lost_area: float = 0.0
+    area_scale: float = 1.0
+    why_level_set: str | None = None
+    topology_passes: int = 0
+    repairs: dict = field(default_factory=dict)
+    changes: list = field(default_factory=list)
+    seconds: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """The report as JSON-ready builtins."""
+        return dataclasses.asdict(self)
+
+
+class _Clock:
+    """Wall seconds per part, with the device synchronized at each boundary so that asynchronous kernel
+    launches are charged to the part that issued them."""
+
+    def __init__(self, device, seconds: dict):
+        self.device, self.seconds = device, seconds
+        wp.synchronize_device(device)
+        self.last = time.perf_counter()
+
+    def lap(self, part: str) -> None:
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.seconds[part] = self.seconds.get(part, 0.0) + now - self.last
+        self.last = now
 
 
 def _first(idx: np.ndarray, k: int = 5) -> str:
@@ -263,73 +403,265 @@ def validate_surface(mesh: Any, *, where: str = "") -> None:
         raise MeshError(f"{prefix}{name}: " + "; ".join(problems))
 
 
-def _inward_thickness(m: Mesh, wm: wp.Mesh, device) -> float:
-    """Area-weighted low percentile of the distance through the shape along inward face normals."""
-    v = m.vertices.astype(np.float64)
-    f = m.faces
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    area2 = np.linalg.norm(n, axis=1)
-    rng = np.random.default_rng(0)
-    pick = rng.choice(f.shape[0], size=min(_THICKNESS_SAMPLES, f.shape[0]), p=area2 / area2.sum())
-    centroid = v.mean(0)
-    # an open mesh may be wound either way: orient by the sign of its volume about the centroid
-    vol = np.einsum("ij,ij->i", v[f[:, 0]] - centroid, n).sum()
-    normals = n[pick] / area2[pick, None] * (1.0 if vol >= 0.0 else -1.0)
-    points = v[f[pick]].mean(1)
-    diag = m.bbox_diagonal
-    t = wp.empty(pick.size, dtype=wp.float32, device=device)
-    wp.launch(_k.inward_thickness, dim=pick.size,
-              inputs=[wm.id, wp.array(points, dtype=wp.vec3, device=device),
-                      wp.array(normals, dtype=wp.vec3, device=device), 1e-5 * diag, 2.0 * diag],
-              outputs=[t], device=device)
-    hits = t.numpy()
-    hits = hits[hits > 0.0]
-    if hits.size < 16:
-        return float(diag)
-    return float(np.percentile(hits, _THIN_PERCENTILE))
+@dataclass
+class _Source:
+    """An input as the level set sees it: positions, triangles and what was repaired on the way.
+
+    ``mesh`` is set when the input is a valid closed surface (:func:`validate_surface`); ``euler`` is
+    None unless the input is edge-manifold (then ``V - E + F``), ``loops`` its boundary loops.
+    """
+
+    v: np.ndarray
+    f: np.ndarray
+    name: str
+    mesh: Mesh | None
+    repairs: dict
+    euler: int | None
+    loops: int
+    components: int
 
 
-def auto_spacing(m: Mesh, target: int, wm: wp.Mesh, device) -> float:
-    """Grid spacing of the automatic resolution (mesh units); see :func:`sdf_remesh`."""
-    side = float((m.vertices.max(0) - m.vertices.min(0)).max())
-    h_faces = np.sqrt(_MC_FACES_PER_AREA * m.area() / (_OVERSAMPLE * target))
-    h_thin = _inward_thickness(m, wm, device) / _CELLS_ACROSS_THIN
-    h = max(min(h_faces, h_thin), h_faces / _MAX_THIN_REFINE)
-    return float(np.clip(h, side / (_MAX_NODES - 1), side / (_MIN_NODES - 1)))
+def _raw_arrays(source: Any) -> tuple[np.ndarray, np.ndarray, str]:
+    """Positions and triangles of ``source`` as stored, with no checks beyond shapes."""
+    import trimesh
+
+    if isinstance(source, Mesh):
+        return source.vertices.astype(np.float64), source.faces.astype(np.int64), source.name
+    if isinstance(source, tuple) and len(source) == 2:
+        return np.asarray(source[0], np.float64), np.asarray(source[1], np.int64), "mesh"
+    if isinstance(source, trimesh.Trimesh):
+        return np.asarray(source.vertices, np.float64), np.asarray(source.faces, np.int64), "trimesh"
+    path = os.fspath(source)
+    tm = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64), os.path.basename(path)
 
 
-def _marching_cubes(grid: wp.array, origin: np.ndarray, spacing: float, method: str):
-    """Zero level set of the grid as (V, 3) float64 positions and (F, 3) int64 faces."""
-    if method == "warp":
-        import warp.geometry
+def _face_components(f: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Connected-component label of every face (faces sharing a vertex are connected)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-        upper = origin + spacing * (np.asarray(grid.shape) - 1)
-        verts, idx = warp.geometry.IsoSurfaceMarchingCubes.extract(
-            grid, 0.0, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
-        return verts.numpy().astype(np.float64), idx.numpy().reshape(-1, 3).astype(np.int64)
-    from skimage.measure import marching_cubes
-
-    verts, tris, _, _ = marching_cubes(grid.numpy(), 0.0, spacing=(spacing,) * 3)
-    return verts.astype(np.float64) + origin, tris.astype(np.int64)
+    rows = f.reshape(-1)
+    cols = np.roll(f, -1, axis=1).reshape(-1)
+    _, label = connected_components(coo_matrix((np.ones(rows.size, np.int8), (rows, cols)),
+                                               shape=(num_vertices, num_vertices)), directed=False)
+    return label[f[:, 0]]
 
 
-def _largest_component(v: np.ndarray, f: np.ndarray):
-    """The connected component with the most faces, its vertices renumbered."""
+def _topology_counts(v: np.ndarray, f: np.ndarray) -> tuple[int | None, int, int, int, int]:
+    """Euler characteristic (None unless edge-manifold), boundary loops, non-manifold edges, inconsistently
+    wound edges and components of a triangle soup."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     nv = v.shape[0]
-    rows = f[:, [0, 1, 2]].reshape(-1)
-    cols = f[:, [1, 2, 0]].reshape(-1)
-    _, label = connected_components(coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(nv, nv)),
-                                    directed=False)
-    face_label = label[f[:, 0]]
-    keep = face_label == np.argmax(np.bincount(face_label))
+    a = f.reshape(-1)
+    b = np.roll(f, -1, axis=1).reshape(-1)
+    undirected, counts = np.unique(np.minimum(a, b) * nv + np.maximum(a, b), return_counts=True)
+    many = int(np.count_nonzero(counts > 2))
+    _, dcounts = np.unique(a * nv + b, return_counts=True)
+    inconsistent = int(np.count_nonzero(dcounts > 1))
+    boundary = undirected[counts == 1]
+    loops = 0
+    if boundary.size:
+        ends = np.stack([boundary // nv, boundary % nv])
+        used, compact = np.unique(ends, return_inverse=True)
+        compact = compact.reshape(2, -1)
+        graph = coo_matrix((np.ones(boundary.size, np.int8), (compact[0], compact[1])), shape=(used.size,) * 2)
+        loops = int(connected_components(graph, directed=False)[0])
+    euler = None if many else int(np.unique(f).size - undirected.size + f.shape[0])
+    components = int(np.unique(_face_components(f, nv)).size)
+    return euler, loops, many, inconsistent, components
+
+
+def _read_source(source: Any) -> _Source:
+    """The input, repaired where the level set can repair it, with a record of what was repaired.
+
+    A valid input is used as it is. One that :func:`~vnc_warp.mesh.load_mesh` refuses for a reason the
+    level set removes (non-manifold edges or vertices, duplicate or degenerate faces, inconsistent winding)
+    is read as stored instead: degenerate faces are dropped, duplicated faces kept once (both dropped
+    where a pair is wound both ways: a double-sided sheet encloses nothing), inconsistent winding fixed
+    where the faces allow (trimesh), and the rest left to the winding-number sign. Anything else
+    (NaN, empty, bad indices, unreadable files) raises as ``load_mesh`` does.
+    """
+    import trimesh
+
+    try:
+        mesh = load_mesh(source)
+    except MeshError as exc:
+        if not any(key in str(exc) for key in _REPAIRABLE):
+            raise
+        mesh = None
+    if mesh is not None:
+        euler, loops, _, _, components = _topology_counts(mesh.vertices, mesh.faces)
+        valid = mesh.is_watertight and not surface_problems(mesh.vertices, mesh.faces)
+        return _Source(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64), mesh.name,
+                       mesh if valid else None, {"components": components} if components > 1 else {},
+                       euler, loops, components)
+    v, f, name = _raw_arrays(source)
+    # merged by position as load_mesh does, so texture seams do not read as boundaries
+    v, inv = np.unique(v, axis=0, return_inverse=True)
+    f = inv.reshape(-1)[f]
+    repairs = {}
+    scale = float(np.linalg.norm(v.max(0) - v.min(0)))
+    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0]) | (area2 <= 1e-12 * scale**2)
+    if degenerate.any():
+        repairs["degenerate_faces"] = int(degenerate.sum())
+        f = f[~degenerate]
+    key = np.sort(f, axis=1)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if first.size < f.shape[0]:
+        # a face is wound "even" when the vertex after its smallest one is the middle one
+        lowest = np.argmin(f, axis=1)
+        even = f[np.arange(f.shape[0]), (lowest + 1) % 3] == key[:, 1]
+        mixed = np.zeros(first.size, dtype=bool)
+        np.logical_or.at(mixed, inverse, even != even[first[inverse]])
+        keep = (np.arange(f.shape[0]) == first[inverse]) & ~mixed[inverse]
+        repairs["duplicate_faces"] = int(f.shape[0] - keep.sum())
+        f = f[keep]
+    euler, loops, many, inconsistent, components = _topology_counts(v, f)
+    if many:
+        repairs["non_manifold_edges"] = many
+    if inconsistent and not many:
+        tm = trimesh.Trimesh(v, f, process=False)
+        trimesh.repair.fix_winding(tm)
+        repairs["reoriented_faces"] = int(np.count_nonzero((np.asarray(tm.faces) != f).any(axis=1)))
+        f = np.asarray(tm.faces, np.int64)
+        euler, loops, many, inconsistent, components = _topology_counts(v, f)
+    pinched = _nonmanifold_vertices(f, v.shape[0]) if not many and not inconsistent else np.zeros(0)
+    if pinched.size:
+        repairs["non_manifold_vertices"] = int(pinched.size)
+        euler = None
+    if components > 1:
+        repairs["components"] = components
+    used = np.unique(f)
+    remap = np.zeros(v.shape[0], dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return _Source(v[used], remap[f], name, None, repairs, euler, loops, components)
+
+
+def auto_spacing(area: float, side: float, target: int, wm: wp.Mesh, x: wp.array, tri: wp.array) -> float:
+    """Grid spacing of the automatic resolution (mesh units); see :func:`sdf_remesh`.
+
+    Args:
+        area: surface area of the input.
+        side: longest side of its bounding box.
+        target: face count asked for.
+        wm: ``wp.Mesh`` of the input, its faces wound outward.
+        x, tri: its (V,) vec3 positions and (3F,) int32 corners on ``wm``'s device.
+    """
+    h_faces = np.sqrt(_MC_FACES_PER_AREA * area / (_OVERSAMPLE * target))
+    hits = inward_distances(wm, x, tri, _THICKNESS_SAMPLES, span=np.sqrt(3.0) * side)
+    hits = hits[hits > 0.0]
+    thin = float(np.percentile(hits, _THIN_PERCENTILE)) if hits.size >= 16 else np.sqrt(3.0) * side
+    h = max(min(h_faces, thin / _CELLS_ACROSS_THIN), h_faces / _MAX_THIN_REFINE)
+    return float(np.clip(h, side / (_MAX_NODES - 1), side / (_MIN_NODES - 1)))
+
+
+@dataclass
+class _LevelSet:
+    """A marching-cubes surface on the device: (V,) vec3 ``points``, (3F,) int32 ``indices``."""
+
+    points: wp.array
+    indices: wp.array
+
+    @property
+    def num_faces(self) -> int:
+        return self.indices.shape[0] // 3
+
+    @property
+    def euler(self) -> int:
+        """V - E + F of the closed surface marching cubes makes (E = 3F / 2)."""
+        return self.points.shape[0] - self.num_faces // 2
+
+    def host(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.points.numpy().astype(np.float64), self.indices.numpy().reshape(-1, 3).astype(np.int64)
+
+    def mesh(self) -> wp.Mesh:
+        return wp.Mesh(points=self.points, indices=self.indices)
+
+
+def _level_set(wm: wp.Mesh, lo: np.ndarray, hi: np.ndarray, h: float, shift, area: float, use_winding: int,
+               method: str, clock: _Clock) -> _LevelSet:
+    """Zero level set of ``wm``'s signed distance on a grid of spacing ``h`` covering ``[lo, hi]``."""
+    device = clock.device
+    origin = lo - (2.0 - np.asarray(shift)) * h
+    shape = tuple(int(n) for n in np.ceil((hi - origin) / h).astype(int) + 3)
+    grid = sample_grid(wm, origin, h, shape, band_factor=choose_band_factor(shape, area, h),
+                       use_winding=use_winding, device=device)
+    wp.launch(_k.push_off_zero, dim=shape, inputs=[grid, _MIN_ABS_SDF * h], device=device)
+    clock.lap("sdf")
+    if method == "warp":
+        import warp.geometry
+
+        upper = origin + h * (np.asarray(shape) - 1)
+        points, indices = warp.geometry.IsoSurfaceMarchingCubes.extract(
+            grid, 0.0, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
+    else:
+        from skimage.measure import marching_cubes
+
+        values = grid.numpy()
+        if not values.min() < 0.0 < values.max():  # no node inside: every part is thinner than the grid
+            clock.lap("marching_cubes")
+            return _LevelSet(wp.empty(0, dtype=wp.vec3, device=device), wp.empty(0, dtype=wp.int32, device=device))
+        verts, tris, _, _ = marching_cubes(values, 0.0, spacing=(h,) * 3)
+        points = wp.array(verts.astype(np.float64) + origin, dtype=wp.vec3, device=device)
+        indices = wp.array(tris.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
+    clock.lap("marching_cubes")
+    return _LevelSet(points, indices)
+
+
+def _farthest(wm: wp.Mesh, points: wp.array, cap: float) -> float:
+    """Largest distance from ``points`` to ``wm`` (at most ``cap``)."""
+    out = wp.zeros(1, dtype=wp.float32, device=points.device)
+    if points.shape[0]:
+        wp.launch(_k.farthest_distance, dim=points.shape[0], inputs=[wm.id, points, float(cap)], outputs=[out],
+                  device=points.device)
+    return float(out.numpy()[0])
+
+
+def _lost_share(x: wp.array, tri: wp.array, result: wp.Mesh, distance: float) -> float:
+    """Share of a surface's area (4096 area-weighted samples) outside ``result`` (a ``wp.Mesh`` with winding
+    numbers) and farther than ``distance`` from it: parts that vanished. Input surface inside the result (the
+    faces where overlapping components met) is not lost."""
+    points, _ = surface_samples(x, tri, _THICKNESS_SAMPLES, seed=1)
+    d = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
+    wp.launch(_k.signed_distance_points, dim=points.shape[0], inputs=[result.id, points, 2.0 * float(distance), 1],
+              outputs=[d], device=x.device)
+    return float(np.mean(d.numpy() > distance))
+
+
+def _device_bounds(x: wp.array) -> tuple[np.ndarray, np.ndarray]:
+    lo = wp.array(np.full(3, np.inf, np.float32), dtype=wp.float32, device=x.device)
+    hi = wp.array(np.full(3, -np.inf, np.float32), dtype=wp.float32, device=x.device)
+    wp.launch(_k.bounds, dim=x.shape[0], inputs=[x], outputs=[lo, hi], device=x.device)
+    return lo.numpy().astype(np.float64), hi.numpy().astype(np.float64)
+
+
+def _components(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per face its component label, and per component its area."""
+    label = _face_components(f, v.shape[0])
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    return label, np.bincount(label, weights=area)
+
+
+def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces ``f[keep]`` with their vertices renumbered."""
     f = f[keep]
     used = np.unique(f)
-    remap = np.zeros(nv, dtype=np.int64)
+    remap = np.zeros(v.shape[0], dtype=np.int64)
     remap[used] = np.arange(used.size)
     return v[used], remap[f]
+
+
+def _largest_component(v: np.ndarray, f: np.ndarray):
+    """The connected component with the most area, its vertices renumbered."""
+    label, area = _components(v, f)
+    if not f.shape[0]:
+        return v, f
+    return _keep_faces(v, f, label == np.argmax(area))
 
 
 def _drop_double_faces(f: np.ndarray) -> np.ndarray:
@@ -350,11 +682,28 @@ def _area_and_centroid(v: np.ndarray, f: np.ndarray) -> tuple[float, np.ndarray]
     return float(area.sum()), (area[:, None] * v[f].mean(1)).sum(0) / area.sum()
 
 
-class _Regularizer:
-    """Isotropic regularization of decimated surfaces on the marching-cubes surface they came from.
+class _Target:
+    """A surface the regularization projects onto: its ``wp.Mesh`` and unit vertex normals."""
 
-    Each iteration runs, as Warp kernels (``vnc_warp.kernels.remesh``) on arrays allocated once per
-    call, with no host round trip:
+    def __init__(self, mesh: wp.Mesh):
+        self.mesh = mesh
+        dev = mesh.points.device
+        self.normals = wp.zeros(mesh.points.shape[0], dtype=wp.vec3, device=dev)
+        wp.launch(_kr.vertex_normals, dim=mesh.indices.shape[0] // 3, inputs=[mesh.points, mesh.indices],
+                  outputs=[self.normals], device=dev)
+        wp.launch(_kr.normalize_vectors, dim=self.normals.shape[0], inputs=[self.normals], device=dev)
+
+    @property
+    def args(self) -> list:
+        return [self.mesh.id, self.mesh.points, self.mesh.indices, self.normals]
+
+
+class _HalfEdgeSurface:
+    """A closed manifold surface as half-edges on one device (layout: ``vnc_warp.kernels.remesh``), with
+    every work array of the regularization allocated once; the methods only launch kernels.
+
+    Isotropic regularization (:meth:`regularize`): each iteration runs, as Warp kernels, with no host
+    round trip:
 
     1. one round of *relocations*: edges shorter than 4/5 of the target length ``L`` are collapsed
        into their midpoints, and as many edges longer than 4/3 ``L`` are split at theirs, reusing the
@@ -364,46 +713,19 @@ class _Regularizer:
        even out the density across a shape, and uniform density is what VNC-soft needs;
     2. one round of edge flips that lower the deviation of valences from 6;
     3. one sweep of tangential relaxation toward the area-weighted centroid of the one-ring,
-       followed by projection onto the marching-cubes surface (``wp.mesh_query_point_no_sign``).
+       followed by projection onto the target surface (``wp.mesh_query_point_no_sign``).
 
     After the last iteration every vertex moves along its normal by minus the mean distance of its
-    faces' centroids from the marching-cubes surface: projected vertices make every face a chord
-    under a convex surface, which would lose area (2.4% on the armadillo) and make ``keep_area``
-    inflate the whole shape.
+    faces' centroids from the target surface: projected vertices make every face a chord under a
+    convex surface, which would lose area (2.4% on the armadillo) and make ``keep_area`` inflate the
+    whole shape.
 
     ``L = sqrt(4 A / (sqrt(3) F))`` is the edge of an equilateral triangle of the mean face area.
-    The connectivity changes every round, so one-rings are walked on a half-edge structure (built
-    once with NumPy) rather than read from a fixed adjacency list. Operations of one round run in
-    parallel on an independent set; collapses keep the link condition (so the genus); no operation
-    folds a face; tips and creases are held (``_FEATURE_COS``, ``_COLLAPSE_FLAT_COS``).
+    The connectivity changes every round, so one-rings are walked on the half-edge structure rather
+    than read from a fixed adjacency list. Operations of one round run in parallel on an independent
+    set; collapses keep the link condition (so the genus); no operation folds a face; tips and creases
+    are held (``_FEATURE_COS``, ``_COLLAPSE_FLAT_COS``).
     """
-
-    def __init__(self, v_mc: np.ndarray, f_mc: np.ndarray, device):
-        f_mc = np.asarray(f_mc, dtype=np.int32)
-        # the projection test compares face normals with vertex normals: wind the target outward too
-        if np.einsum("ij,ij->i", v_mc[f_mc[:, 0]], np.cross(v_mc[f_mc[:, 1]], v_mc[f_mc[:, 2]])).sum() < 0.0:
-            f_mc = f_mc[:, ::-1]
-        self.device = device
-        self.surface = wp.Mesh(points=wp.array(v_mc, dtype=wp.vec3, device=device),
-                               indices=wp.array(np.ascontiguousarray(f_mc).reshape(-1), dtype=wp.int32, device=device))
-
-    def __call__(self, v: np.ndarray, f: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-        """Regularized ``(v, f)``, same shapes; returned unchanged unless the surface is a closed
-        manifold (then its validation names the problem)."""
-        state = _HalfEdgeSurface.build(v, f, self.device)
-        if state is None:
-            return v, f
-        for it in range(iterations):
-            state.relocate(it)
-            state.flip(it)
-            state.relax(self.surface)
-        state.straddle(self.surface)
-        return state.x.numpy().astype(np.float64), state.tri.numpy().reshape(-1, 3).astype(np.int64)
-
-
-class _HalfEdgeSurface:
-    """A closed manifold surface as half-edges on one device (layout: ``vnc_warp.kernels.remesh``), with
-    every work array of the regularization allocated once; the methods only launch kernels."""
 
     def __init__(self, v: np.ndarray, f: np.ndarray, twin: np.ndarray, out_he: np.ndarray, device):
         nv, self.num_faces, self.num_he = v.shape[0], f.shape[0], 3 * f.shape[0]
@@ -422,14 +744,21 @@ class _HalfEdgeSurface:
         self.offsets = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
         self.lists = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
         self.counts = [wp.zeros(1, dtype=wp.int32, device=device) for _ in range(2)]
-        self.offset = wp.empty(self.num_faces, dtype=wp.float32, device=device)
-        area, _ = _area_and_centroid(np.asarray(v, dtype=np.float64), f)
-        self.length = float(np.sqrt(4.0 * area / (np.sqrt(3.0) * f.shape[0])))
+        self.moved = wp.zeros(1, dtype=wp.float64, device=device)
+        self.length = 0.0
+
+    @property
+    def num_vertices(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def euler(self) -> int:
+        return self.num_vertices - self.num_faces // 2
 
     @classmethod
     def build(cls, v: np.ndarray, f: np.ndarray, device) -> _HalfEdgeSurface | None:
         """The surface, or None unless every edge has exactly two opposite half-edges and every vertex
-        one fan of faces."""
+        one fan of faces (host work: once per surface that does not come from a previous state)."""
         nv = v.shape[0]
         a = f.reshape(-1).astype(np.int64)
         b = np.roll(f, -1, axis=1).reshape(-1).astype(np.int64)
@@ -454,6 +783,121 @@ class _HalfEdgeSurface:
     def _count_valence(self):
         wp.launch(_kr.ring_size, dim=self.valence.shape[0], inputs=[self.tri, self.twin, self.out_he, _MAX_RING],
                   outputs=[self.valence], device=self.device)
+
+    def measures(self, tiny: float = 0.0) -> tuple[float, float, np.ndarray, int, int]:
+        """Area, enclosed volume, area centroid (3,), faces with non-finite corners, and slivers (below
+        ``_SLIVER``, or twice the area below ``tiny``)."""
+        sums = wp.zeros(2, dtype=wp.float64, device=self.device)
+        centroid = wp.zeros(1, dtype=wp.vec3d, device=self.device)
+        bad = wp.zeros(2, dtype=wp.int32, device=self.device)
+        wp.launch(_kr.face_measures, dim=self.num_faces, inputs=[self.x, self.tri, _SLIVER, float(tiny)],
+                  outputs=[sums, centroid, bad], device=self.device)
+        s, c, b = sums.numpy(), centroid.numpy()[0], bad.numpy()
+        return float(s[0]), float(s[1]), np.asarray(c) / max(float(s[0]), 1e-300), int(b[0]), int(b[1])
+
+    def problems(self, tiny: float) -> list[str]:
+        """Every reason the surface is not a valid VNC-Flow state (as :func:`surface_problems` names
+        them), from device counts: half-edges without a matching twin, rings that do not close over
+        all faces, non-finite or sliver faces, non-positive volume."""
+        errors = wp.zeros(3, dtype=wp.int32, device=self.device)
+        wp.launch(_kr.check_halfedges, dim=self.num_he, inputs=[self.tri, self.twin], outputs=[errors],
+                  device=self.device)
+        self._count_valence()
+        wp.launch(_kr.check_rings, dim=self.num_vertices, inputs=[self.valence], outputs=[errors], device=self.device)
+        _, volume, _, nonfinite, slivers = self.measures(tiny)
+        e = errors.numpy()
+        out = []
+        if e[0]:
+            out.append(f"non-manifold or inconsistent orientation: {e[0]} half-edge(s) without an opposite twin")
+        if e[1] or e[2] != self.num_he:
+            out.append(f"non-manifold: {e[1]} vertex ring(s) do not close; the rings meet {e[2]} of "
+                       f"{self.num_he} half-edges")
+        if nonfinite:
+            out.append(f"{nonfinite} face(s) have NaN or infinite corners")
+        if slivers:
+            out.append(f"{slivers} degenerate face(s) have (near) zero area")
+        if not volume > 0.0:
+            out.append(f"inward orientation: the enclosed volume is {volume:.6g} <= 0")
+        return out
+
+    def buried(self, wm: wp.Mesh, offset: float, use_winding: int) -> int:
+        """Vertices whose point ``offset`` out along their normal is inside ``wm`` (this surface, with winding
+        numbers): see ``count_buried``."""
+        normals = wp.zeros(self.num_vertices, dtype=wp.vec3, device=self.device)
+        wp.launch(_kr.vertex_normals, dim=self.num_faces, inputs=[self.x, self.tri], outputs=[normals],
+                  device=self.device)
+        wp.launch(_kr.normalize_vectors, dim=self.num_vertices, inputs=[normals], device=self.device)
+        count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(_k.count_buried, dim=self.num_vertices, inputs=[wm.id, self.x, normals, float(offset),
+                                                                     use_winding], outputs=[count], device=self.device)
+        return int(count.numpy()[0])
+
+    def set_positions(self, x: wp.array) -> None:
+        wp.copy(self.x, x)
+
+    def frozen(self, *, winding: bool) -> wp.Mesh:
+        """A ``wp.Mesh`` of the current surface on copies of its arrays (the state may change after)."""
+        return wp.Mesh(points=wp.clone(self.x), indices=wp.clone(self.tri), support_winding_number=winding)
+
+    def scale_about(self, centre: np.ndarray, factor: float) -> None:
+        wp.launch(_kr.scale_about, dim=self.num_vertices, inputs=[self.x, wp.vec3(*centre), float(factor)],
+                  device=self.device)
+
+    def to_mesh(self, name: str, origin: np.ndarray) -> Mesh:
+        """The surface as a :class:`~vnc_warp.mesh.Mesh` whose :attr:`~vnc_warp.mesh.Mesh.origin` is ``origin``
+        (the frame the device positions are relative to), its edge topology built on the device. Each vertex's
+        outgoing half-edge is reset to the one :meth:`build` picks (the last), so that a run resumed from the
+        saved mesh regularizes exactly as the run that wrote it."""
+        dev = self.device
+        self.out_he.fill_(-1)
+        wp.launch(_kr.last_outgoing, dim=self.num_he, inputs=[self.tri], outputs=[self.out_he], device=dev)
+        flags = wp.empty(self.num_he, dtype=wp.int32, device=dev)
+        wp.launch(_kr.owned_edges, dim=self.num_he, inputs=[self.twin], outputs=[flags], device=dev)
+        offsets = wp.empty_like(flags)
+        wp.utils.array_scan(flags, offsets, inclusive=False)
+        num_edges = self.num_he // 2
+        edges = wp.empty(num_edges, dtype=wp.vec2i, device=dev)
+        interior = wp.empty(num_edges, dtype=wp.vec4i, device=dev)
+        wp.launch(_kr.edge_topology, dim=self.num_he, inputs=[self.tri, self.twin, offsets], outputs=[edges, interior],
+                  device=dev)
+        topo = EdgeTopology(edges.numpy().reshape(-1, 2).copy(), interior.numpy().reshape(-1, 4).copy(),
+                            np.zeros((0, 2), np.int32))
+        # copies: on the CPU device .numpy() is a view, and the state changes at the next call
+        local = self.x.numpy().copy()
+        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
+        mesh = Mesh(vertices, self.tri.numpy().reshape(-1, 3).copy(), topo, name, origin=np.asarray(origin, np.float64))
+        mesh._cache["local_vertices"] = (vertices, local)
+        return mesh
+
+    def regularize(self, surface: wp.Mesh, iterations: int, area: float, *, settle: bool = False) -> int:
+        """``iterations`` rounds of relocations, flips and relaxation onto ``surface`` (a ``wp.Mesh``
+        wound outward), then every vertex onto it; ``area`` sets the target edge length.
+
+        With ``settle``, rounds go on (``_SETTLE_CHUNK`` at a time, at most ``_MAX_SETTLE``) until a
+        relaxation sweep moves vertices by less than ``_SETTLED`` edge lengths on average, or by no less
+        than ``_SETTLE_RATE`` times what it moved a chunk before (the moves have reached the floor of
+        the flips and relocations that go on): the density of a tessellation evens out by diffusion,
+        and a surface regularized only part of the way drifts on at every later regularization (the
+        torus's inner/outer edge-length ratio 0.85 -> 0.93 took 300 iterations, and its VNC-AUC rose
+        10 % with it). Returns the iterations run.
+        """
+        self.length = float(np.sqrt(4.0 * area / (np.sqrt(3.0) * self.num_faces)))
+        target = _Target(surface)
+        done, before = 0, np.inf
+        while True:
+            for _ in range(iterations if done == 0 else _SETTLE_CHUNK):
+                self.relocate(done)
+                self.flip(done)
+                self.relax(target)
+                done += 1
+            if not settle or done >= _MAX_SETTLE:
+                break
+            moved = float(self.moved.numpy()[0]) / (self.length * self.num_vertices)
+            if moved < _SETTLED or moved > _SETTLE_RATE * before:
+                break
+            before = moved
+        self.project(target)
+        return done
 
     def relocate(self, it: int):
         """One round of paired collapses and splits (``it`` seeds the priorities)."""
@@ -494,13 +938,14 @@ class _HalfEdgeSurface:
         wp.launch(_kr.apply_flips, dim=self.num_he,
                   inputs=[self.tri, self.twin, self.out_he, self.kind, self.lock, seed], device=self.device)
 
-    def relax(self, surface: wp.Mesh):
+    def relax(self, surface: _Target):
         """One sweep of tangential relaxation and projection onto ``surface``; moves that fold or crease
         an edge are undone."""
         dev = self.device
+        self.moved.zero_()
         wp.launch(_kr.tangential_relax, dim=self.x.shape[0],
-                  inputs=[surface.id, self.x, self.tri, self.twin, self.out_he, self.length, _MIN_COS_TURN,
-                          _FEATURE_COS, _MAX_RING], outputs=[self.x_next], device=dev)
+                  inputs=[*surface.args, self.x, self.tri, self.twin, self.out_he, self.length, _MIN_COS_TURN,
+                          _FEATURE_COS, _MAX_RING], outputs=[self.x_next, self.moved], device=dev)
         for _ in range(_REVERT_PASSES):
             wp.launch(_kr.mark_sharpened_edges, dim=self.num_he, inputs=[self.x, self.x_next, self.tri, self.twin,
                                                                          _MIN_COS_TURN],
@@ -509,61 +954,357 @@ class _HalfEdgeSurface:
                       device=dev)
         self.x, self.x_next = self.x_next, self.x
 
-    def straddle(self, surface: wp.Mesh):
-        """Move vertices along their normals so faces straddle ``surface`` rather than cut under it."""
-        dev = self.device
-        wp.launch(_kr.face_offsets, dim=self.num_faces, inputs=[surface.id, self.x, self.tri, self.length],
-                  outputs=[self.offset], device=dev)
-        wp.launch(_kr.straddle, dim=self.x.shape[0], inputs=[self.x, self.tri, self.twin, self.out_he, self.offset,
-                                                             _MAX_RING], outputs=[self.x_next], device=dev)
+    def project(self, surface: _Target):
+        """Every vertex onto ``surface`` (the relocations of the last iteration leave some at edge midpoints)."""
+        wp.launch(_kr.project_onto, dim=self.x.shape[0],
+                  inputs=[*surface.args, self.x, self.tri, self.twin, self.out_he, self.length, _FEATURE_COS,
+                          _MAX_RING], outputs=[self.x_next], device=self.device)
         self.x, self.x_next = self.x_next, self.x
 
 
-def _finish(v: np.ndarray, f: np.ndarray, target: int, area: float | None, name: str,
-            regularizer: _Regularizer | None = None, iterations: int = 0):
-    """Orient outward, regularize (``iterations`` > 0), scale to ``area`` (if given) and check a
-    decimated surface.
+def _repairs_text(repairs: dict) -> str:
+    """What :func:`_read_source` repaired, in words ("1 non-manifold edge(s), 2 duplicate face(s) removed")."""
+    return ", ".join(f"{n} {what}" for key, what in (("non_manifold_edges", "non-manifold edge(s)"),
+                                                     ("non_manifold_vertices", "non-manifold vertex(es)"),
+                                                     ("duplicate_faces", "duplicate face(s) removed"),
+                                                     ("degenerate_faces", "degenerate face(s) removed"),
+                                                     ("reoriented_faces", "face(s) re-wound"))
+                     if (n := repairs.get(key)))
 
-    Returns:
-        ``(mesh, None)`` when it is valid and within 2% of ``target`` faces, else ``(None, problem)``.
+
+class _Remesher:
+    """:func:`sdf_remesh` with its settings fixed and the last result kept on the device as half-edges.
+
+    Called with a ``source``, it remeshes that input. Called with ``positions`` (a (V,) vec3 array of the
+    last result's vertices, moved: a VNC-Flow state), it remeshes the last result at those positions
+    without reading anything back to the host first, at the last result's face count and grid spacing
+    (so that a surface made from the level set at spacing ``h`` is checked against its level set at
+    the same ``h``).
     """
-    if abs(f.shape[0] - target) > _FACE_COUNT_TOLERANCE * target:
-        return None, f"{f.shape[0]} faces, not within {_FACE_COUNT_TOLERANCE:.0%} of {target}"
-    current, centroid = _area_and_centroid(v, f)
-    if not (current > 0.0 and np.isfinite(current)):
-        return None, f"surface area {current:.6g}"
-    if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0.0:
-        f = np.ascontiguousarray(f[:, ::-1])
-    if iterations > 0:
-        v, f = regularizer(v, f, iterations)
-        current, centroid = _area_and_centroid(v, f)
-    if area is not None:
-        v = centroid + (v - centroid) * np.sqrt(area / current)
-    try:
-        mesh = from_arrays(v, f, name=name, merge=False)
+
+    def __init__(self, *, faces: int | None = None, resolution: int | None = None, device=None,
+                 keep_area: bool = True, sign: str = "winding", marching_cubes: str = "auto",
+                 relax_iterations: int = 24, allow_changes: bool = False, warn: bool = True):
+        self.use_winding = sign_flag(sign)
+        if marching_cubes not in ("auto", "skimage", "warp"):
+            raise ValueError(f"sdf_remesh: marching_cubes must be 'auto', 'skimage' or 'warp', got {marching_cubes!r}")
+        if faces is not None and int(faces) < 8:
+            raise ValueError(f"sdf_remesh: target face count must be at least 8, got {faces!r}")
+        if resolution is not None and int(resolution) < 8:
+            raise ValueError(f"sdf_remesh: resolution must be at least 8 nodes, got {resolution!r}")
+        if int(relax_iterations) != relax_iterations or relax_iterations < 0:
+            raise ValueError(f"sdf_remesh: relax_iterations must be a non-negative integer, got {relax_iterations!r}")
+        self.device = get_device(device)
+        self.faces = None if faces is None else int(faces)
+        self.resolution = None if resolution is None else int(resolution)
+        self.keep_area, self.sign = keep_area, sign
+        self.method = marching_cubes if marching_cubes != "auto" else ("warp" if self.device.is_cuda else "skimage")
+        self.relax_iterations = int(relax_iterations)
+        self.allow_changes, self.warn = allow_changes, warn
+        self.state: _HalfEdgeSurface | None = None
+        # every device position is relative to this point (float64), so that a mesh far from the coordinate
+        # origin keeps float32 precision (as Mesh.local_vertices does for the operators)
+        self.origin = np.zeros(3)
+        self.spacing = 0.0
+        self.name = "mesh"
+
+    def adopt(self, mesh: Mesh, spacing: float, name: str) -> None:
+        """Continue from ``mesh`` (a result of an earlier remesher with these settings, read back from disk), in its
+        frame: positions given later are relative to ``mesh.origin``."""
+        self.origin = np.asarray(mesh.origin, np.float64)
+        self.state = _HalfEdgeSurface.build(mesh.local_vertices.astype(np.float64), mesh.faces.astype(np.int64),
+                                            self.device)
+        if self.state is None:
+            raise MeshError(f"sdf_remesh: {name}: the stage to continue from is not a closed manifold surface")
+        self.spacing, self.name = float(spacing), name
+
+    def __call__(self, source: Any = None, *, positions: wp.array | None = None) -> tuple[Mesh, RemeshReport]:
+        dev = self.device
+        seconds: dict = {}
+        clock = _Clock(dev, seconds)
+        if positions is not None:
+            st = self.state
+            st.set_positions(positions)
+            area_in, _, _, nonfinite, slivers = st.measures()
+            if nonfinite:
+                raise MeshError(f"sdf_remesh: {self.name}: {nonfinite} face(s) have NaN or infinite corners")
+            wm = st.frozen(winding=bool(self.use_winding))
+            x, tri = wm.points, wm.indices
+            target = st.num_faces
+            report = RemeshReport("surface", 0.0, st.num_faces, euler_in=st.euler, seconds=seconds)
+            why = (f"{slivers} degenerate face(s)" if slivers else
+                   "no regularization asked for" if not self.relax_iterations else None)
+            expected = st.euler
+        else:
+            src = source if isinstance(source, _Source) else _read_source(source)
+            self.name = src.name
+            target = self.faces or src.f.shape[0]
+            if self.sign == "normal" and (src.mesh is None or src.loops):
+                raise ValueError(f"sdf_remesh: {src.name} is not a closed manifold surface; the normal sign is only "
+                                 "right for watertight meshes, use sign='winding'")
+            f = src.f
+            self.origin = 0.5 * (src.v.min(0) + src.v.max(0))
+            v = src.v - self.origin
+            if src.mesh is None and np.einsum("ij,ij->i", v[f[:, 0]] - v.mean(0),
+                                              np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])).sum() < 0.0:
+                f = f[:, ::-1]  # an open surface may be wound either way: inward distances need it outward
+            x = wp.array(v, dtype=wp.vec3, device=dev)
+            tri = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
+            wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(self.use_winding))
+            area_in = float(_area_and_centroid(v, src.f)[0])
+            report = RemeshReport("surface", 0.0, src.f.shape[0], euler_in=src.euler, components_in=src.components,
+                                  repairs=dict(src.repairs), seconds=seconds)
+            why = ("the input is not a valid closed surface" if src.mesh is None else
+                   "the face count changes" if target != src.f.shape[0] else
+                   "no regularization asked for" if not self.relax_iterations else None)
+            st = _HalfEdgeSurface.build(v, src.f, dev) if why is None else None
+            expected = src.euler + src.loops if src.euler is not None and src.components == 1 else None
+            clock.lap("input")
+        lo, hi = _device_bounds(x)
+        side = float((hi - lo).max())
+        tiny = 1e-12 * float(((hi - lo) ** 2).sum())
+        if self.resolution is not None:
+            h = side / (self.resolution - 1)
+        elif positions is not None:
+            h = self.spacing
+        else:
+            h = auto_spacing(area_in, side, target, wm, x, tri)
+        report.spacing = h
+        clock.lap("checks")
+        ls = _level_set(wm, lo, hi, h, _GRIDS[0][0], area_in, self.use_winding, self.method, clock)
+        if why is None:
+            why = self._disagreement(st, wm, ls, h, clock)
+        if why is None:
+            st.regularize(wm, self.relax_iterations, area_in, settle=positions is None)
+            if positions is None:
+                self._own_fixed_point(st, area_in)
+            clock.lap("regularize")
+            if self.keep_area:
+                area, _, centre, _, _ = st.measures()
+                st.scale_about(centre, np.sqrt(area_in / area))
+                report.area_scale = float(np.sqrt(area_in / area))
+            problems = st.problems(tiny)
+            if not problems:
+                out = st.to_mesh(f"{self.name}:remeshed", self.origin)
+                clock.lap("checks")
+                self.state, self.spacing = st, h
+                report.faces, report.vertices, report.euler = out.num_faces, out.num_vertices, st.euler
+                return out, self._conclude(report, expected, refuse=positions is None)
+            why = f"re-tessellating the surface itself left {'; '.join(problems)}"
+        report.method, report.why_level_set = "level_set", why
+        st, out = self._level_set_path(wm, lo, hi, h, ls, area_in, target, report, clock)
+        edge = np.sqrt(4.0 * area_in * (1.0 - report.dropped_area) / (np.sqrt(3.0) * out.num_faces))
+        report.lost_area = _lost_share(x, tri, st.frozen(winding=True), _LOST_EDGES * edge)
+        # a surface made from the level set has its own level set, on another grid, at thin gaps and necks:
+        # remesh it from that until both agree, so the next call re-tessellates instead of flickering
+        while report.topology_passes < _TOPOLOGY_PASSES:
+            area, _, _, _, _ = st.measures()
+            wm = st.frozen(winding=bool(self.use_winding))
+            lo, hi = _device_bounds(st.x)
+            ls = _level_set(wm, lo, hi, report.spacing, _GRIDS[0][0], area, self.use_winding, self.method, clock)
+            if self._disagreement(st, wm, ls, report.spacing, clock) is None:
+                break
+            again = RemeshReport("level_set", report.spacing, out.num_faces, seconds=seconds)
+            st, out = self._level_set_path(wm, lo, hi, report.spacing, ls, area, target, again, clock)
+            report.topology_passes += 1
+            report.dropped_components += again.dropped_components
+            report.dropped_area = 1.0 - (1.0 - report.dropped_area) * (1.0 - again.dropped_area)
+        clock.lap("checks")
+        if self.relax_iterations:
+            area, _, _, _, _ = st.measures()
+            self._own_fixed_point(st, area)
+            now, _, centre, _, _ = st.measures()
+            st.scale_about(centre, np.sqrt(area / now))
+            out = st.to_mesh(out.name, self.origin)
+            problems = st.problems(tiny)
+            if problems:
+                raise MeshError(f"sdf_remesh: {self.name}: re-tessellating the result left " + "; ".join(problems))
+            clock.lap("regularize")
+        self.state, self.spacing = st, report.spacing
+        report.faces, report.vertices, report.euler = out.num_faces, out.num_vertices, st.euler
+        return out, self._conclude(report, expected, refuse=positions is None)
+
+    def _own_fixed_point(self, st: _HalfEdgeSurface, area: float) -> None:
+        """Regularize a new result once more onto its own surface. It was projected onto a finer surface (the
+        input, or marching cubes), whose detail below its edge length the next re-tessellation, projected onto
+        the result's own surface, rounds off: on springer that first later call moved S by +0.78 %, the ones after
+        it by 0.01-0.07 %. After this pass the first later call is like the others."""
+        st.regularize(st.frozen(winding=False), self.relax_iterations, area)
+
+    def _disagreement(self, st: _HalfEdgeSurface, wm: wp.Mesh, ls: _LevelSet, h: float, clock: _Clock) -> str | None:
+        """Why the surface ``st`` (``wm`` its ``wp.Mesh``) is not its level set ``ls`` at spacing ``h``, or None."""
+        if not ls.num_faces:
+            return "its level set is empty"
+        if ls.euler != st.euler:
+            # specks that marching cubes samples off a tip thinner than the grid are no topology change
+            v, f = ls.host()
+            label, area = _components(v, f)
+            main = label == np.argmax(area)
+            euler = np.unique(f[main]).size - int(main.sum()) // 2
+            clock.lap("checks")
+            if euler != st.euler or area.max() < (1.0 - _SPECKS) * area.sum():
+                return f"its level set has Euler characteristic {ls.euler}, the surface {st.euler}"
+        added = _farthest(wm, ls.points, 2.0 * _AGREE_CELLS * h) / h
+        if added > _AGREE_CELLS:
+            clock.lap("checks")
+            return f"its level set lies up to {added:.2f} grid cells off the surface"
+        buried = st.buried(wm, _BURIED_CELLS * h, self.use_winding)
+        clock.lap("checks")
+        if buried > _BURIED_SHARE * st.num_vertices:
+            return f"{buried} vertex(es) lie inside another part of the shape (self-intersection)"
+        return None
+
+    def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock):
+        """Marching cubes, the largest component, decimation, regularization onto the marching-cubes
+        surface; retried on other grids and less aggressive decimations until the result is valid."""
+        import fast_simplification
+
+        failures = []
+        for g, (shift, refine) in enumerate(_GRIDS):
+            h = h0 * refine
+            ls = first if g == 0 else None
+            for _ in range(3):
+                if ls is None:
+                    ls = _level_set(wm, lo, hi, h, shift, area_in, self.use_winding, self.method, clock)
+                v_mc, f_mc = ls.host()
+                kept = 0
+                if f_mc.shape[0]:
+                    label, comp_area = _components(v_mc, f_mc)
+                    keep = label == np.argmax(comp_area)
+                    kept = int(keep.sum())
+                clock.lap("components")
+                if kept >= 1.2 * target or self.resolution is not None:
+                    break
+                # aim at the oversampled count again, refining at most 4x per step and never past the cap
+                side = float((hi - lo).max())
+                finer = max(h * 0.9 * np.sqrt(max(kept, 1) / (_OVERSAMPLE * target)), 0.25 * h,
+                            side / (_MAX_NODES - 1))
+                if finer >= h:
+                    break
+                h, ls = finer, None
+            if kept < (1.0 + _FACE_COUNT_TOLERANCE) * target:
+                pieces = f" (the largest of {comp_area.size} pieces)" if f_mc.shape[0] and comp_area.size > 1 else ""
+                failures.append(f"marching cubes gave {kept} faces{pieces} at spacing {h:.4g}, fewer than the "
+                                f"{target} asked for; raise `resolution`")
+                if self.resolution is not None:
+                    break
+                continue
+            report.components_level_set = int(comp_area.size)
+            report.dropped_components = int(comp_area.size - 1)
+            report.dropped_area = float(1.0 - comp_area.max() / comp_area.sum())
+            report.spacing = h
+            v_k, f_k = _keep_faces(v_mc, f_mc, keep)
+            if np.einsum("ij,ij->i", v_k[f_k[:, 0]], np.cross(v_k[f_k[:, 1]], v_k[f_k[:, 2]])).sum() < 0.0:
+                f_k = f_k[:, ::-1]
+            surface = wp.Mesh(points=wp.array(v_k, dtype=wp.vec3, device=self.device),
+                              indices=wp.array(np.ascontiguousarray(f_k, dtype=np.int32).reshape(-1), dtype=wp.int32,
+                                               device=self.device))
+            # the kept part keeps its own area: dropping two of three spheres, or a ring too thin for the
+            # grid, must not inflate what is left; only the chords' small loss of area is made up for
+            total = float(comp_area.sum())
+            scale = area_in / total if abs(area_in / total - 1.0) <= _CHORD_LOSS else 1.0
+            area = float(comp_area.max()) * scale if self.keep_area else None
+            for agg in _AGGRESSIVENESS:
+                v, f = fast_simplification.simplify(v_k, f_k, target_count=target, agg=agg)
+                f = _drop_double_faces(f)
+                clock.lap("decimation")
+                done, problem = self._finish(v, f, surface, area, target, report, clock)
+                if problem is None:
+                    return done
+                # cut what the decimation pinched, drop parts it cut off, and check once more
+                v, f = _largest_component(*_split_fans(v, f))
+                done, after_cut = self._finish(v, f, surface, area, target, report, clock)
+                if after_cut is None:
+                    return done
+                failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")
+        what = _repairs_text(report.repairs)
+        raise MeshError(f"sdf_remesh: {self.name}: no valid surface after {len(failures)} attempt(s)"
+                        + (f" from an input with {what}" if what else "") + ": " + " | ".join(failures))
+
+    def _finish(self, v, f, surface, area, target, report, clock):
+        """Orient outward, regularize, scale to ``area`` (if given) and check a decimated surface.
+
+        Returns:
+            ``((state, mesh), None)`` when it is valid and within 2% of ``target`` faces, else
+            ``(None, problem)``.
+        """
+        if abs(f.shape[0] - target) > _FACE_COUNT_TOLERANCE * target:
+            return None, f"{f.shape[0]} faces, not within {_FACE_COUNT_TOLERANCE:.0%} of {target}"
+        v, f = _keep_faces(v, f, np.ones(f.shape[0], dtype=bool))  # decimation can leave vertices unused
+        current, _ = _area_and_centroid(v, f)
+        if not (current > 0.0 and np.isfinite(current)):
+            return None, f"surface area {current:.6g}"
+        if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0.0:
+            f = np.ascontiguousarray(f[:, ::-1])
+        st = _HalfEdgeSurface.build(v, f, self.device)
+        if st is None:
+            return None, "; ".join(surface_problems(v, f)) or "not a closed manifold surface"
+        if self.relax_iterations:
+            st.regularize(surface, self.relax_iterations, current, settle=True)
+            clock.lap("regularize")
+        if area is not None:
+            now, _, centre, _, _ = st.measures()
+            st.scale_about(centre, np.sqrt(area / now))
+            report.area_scale = float(np.sqrt(area / now))
+        out = st.to_mesh(f"{self.name}:remeshed", self.origin)
         # checked as stored (float32), so rounding cannot turn a valid face into a sliver afterwards
-        validate_surface(mesh, where="sdf_remesh")
-    except MeshError as exc:
-        return None, str(exc)
-    return mesh, None
+        problems = surface_problems(out.vertices, out.faces)
+        clock.lap("checks")
+        if problems:
+            return None, f"sdf_remesh: {out.name}: " + "; ".join(problems)
+        return (st, out), None
+
+    def _conclude(self, report: RemeshReport, expected: int | None, *, refuse: bool) -> RemeshReport:
+        """Say what was repaired or changed; refuse (``refuse``: a new input, not a VNC-Flow state whose
+        changes are the flow's own) a result that is not a faithful surface unless allowed."""
+        fixed = _repairs_text(report.repairs)
+        if fixed:
+            report.changes.append("repaired the input: " + fixed)
+        if report.components_in > 1 and report.dropped_components == 0:
+            report.changes.append(f"joined the input's {report.components_in} components into one surface")
+        if report.dropped_components:
+            report.changes.append(f"kept the largest of {report.components_level_set} level-set components: dropped "
+                                  f"{report.dropped_components} ({100 * report.dropped_area:.1f} % of its area)")
+        if report.lost_area > 0.0:
+            report.changes.append(f"{100 * report.lost_area:.1f} % of the input's area lies farther than "
+                                  f"{_LOST_EDGES:g} edge lengths from the result: parts thinner than the grid "
+                                  f"spacing {report.spacing:.4g} broke up or vanished")
+        if expected is not None and report.euler != expected:
+            report.changes.append(f"the topology changed: Euler characteristic {expected} -> {report.euler}")
+        unfaithful = report.dropped_area > _MAX_LOST or report.lost_area > _MAX_LOST
+        if unfaithful and refuse and not self.allow_changes:
+            raise MeshError(f"sdf_remesh: {self.name}: the result would not be a faithful surface: "
+                            + "; ".join(report.changes) + ". Pass allow_changes=True to accept it, or a finer "
+                            "resolution for thin parts")
+        if report.changes and self.warn:
+            warnings.warn(f"sdf_remesh: {self.name}: " + "; ".join(report.changes), RemeshWarning, stacklevel=3)
+        return report
 
 
 def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = None, device=None,
                keep_area: bool = True, sign: str = "winding", marching_cubes: str = "auto",
-               relax_iterations: int = 24) -> Mesh:
+               relax_iterations: int = 24, allow_changes: bool = False, return_report: bool = False):
     """Rebuild a mesh as a clean closed surface of its signed distance (Algorithm 1, lines 2 and 7).
 
-    Steps: signed distance on a narrow-band grid (:func:`vnc_warp.sdf.sample_grid`; inside/outside
-    from the winding number, so an open scan still yields a closed surface), marching cubes, the
-    largest connected component, quadric decimation (fast-simplification) to ``faces``, isotropic
-    regularization (``relax_iterations``, below) and, with ``keep_area``, a scale about the area
-    centroid so the area equals the input's (Sec. 3.2 (3): remeshing keeps face count and surface
-    area). Decimation can flatten parts too thin for the face
-    budget: double-sided triangles are removed, and if the surface fails :func:`validate_surface`,
-    edges and vertices pinched by the decimation are cut (one vertex copy per fan) and parts cut
-    off are dropped. If it still fails, it is decimated again less aggressively, then on
-    a grid shifted by a fraction of a cell, then on a shifted grid 1.5x coarser (where thin parts
-    that keep pinching merge or vanish): at most three grids and nine decimations before giving up.
+    The signed distance (:func:`vnc_warp.sdf.sample_grid`; inside/outside from the winding number, so an
+    open scan still yields a closed surface) is sampled on a narrow-band grid of spacing ``h`` and its
+    zero level set extracted by marching cubes. Then (see the module docstring for why):
+
+    * if the input is a valid closed surface with ``faces`` faces whose level set has its Euler
+      characteristic and lies within ``h`` of it both ways, the input's own surface is regularized
+      (``relax_iterations``, below) and projected back onto itself: same vertex and face counts, same
+      topology, detail kept to the input's own resolution;
+    * otherwise the marching-cubes surface is used: its largest component, quadric decimation
+      (fast-simplification) to ``faces``, and the regularization projected onto it. Decimation can
+      flatten parts too thin for the face budget: double-sided triangles are removed, and if the
+      surface fails :func:`validate_surface`, edges and vertices pinched by the decimation are cut (one
+      vertex copy per fan) and parts cut off are dropped. If it still fails, it is decimated again less
+      aggressively, then on a grid shifted by a fraction of a cell, then on a shifted grid 1.5x coarser:
+      at most three grids and nine decimations before giving up.
+
+    With ``keep_area`` the result is scaled about its area centroid to the input's surface area (Sec. 3.2
+    (3): remeshing keeps face count and surface area), or to the share of it that was kept when level-set
+    components were dropped.
 
     Automatic resolution (``resolution=None``): the grid spacing ``h`` is the smaller of
 
@@ -571,113 +1312,58 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
       ``2.83 * A / h^2`` triangles, so this aims at 4x the target before decimation;
     * half the thinnest parts' thickness (the area-weighted 1st percentile of the distance through
       the shape along inward face normals, 4096 rays), so thin parts keep two cells across and do
-      not break up, but no less than half the first (at most 16x the target before decimation:
-      parts too thin for the face budget would only be pinched by the decimation);
+      not break up, but no less than half the first;
 
     clamped to 32-384 nodes along the longest bounding-box side. If marching cubes still yields
     fewer than 1.2x ``faces``, the spacing is refined and the grid resampled.
 
     Isotropic regularization: quadric decimation leaves edge lengths varying by a factor of several
-    (coefficient of variation ~0.43 on Spot), which VNC-soft reads as curvature (see the module
-    docstring). Each of ``relax_iterations`` iterations pairs collapses of edges shorter than 4/5
-    of the target length with splits of edges longer than 4/3 of it (so vertex and face counts stay
-    exactly those of the decimation), flips edges toward valence 6, and moves every vertex
-    tangentially toward the area-weighted centroid of its one-ring, then back onto the
-    marching-cubes surface; finally vertices move along their normals so faces straddle that
-    surface instead of cutting under it. Tips, creases and parts thinner than two edges are held
-    (see :class:`_Regularizer`). Measured on Spot: edge-length variation 0.43 -> 0.11, 1st
-    percentile of the smallest face angle 3 -> 38 degrees; a remeshed sphere's total VNC-AUC drops
-    to 1.5x an icosphere's (from 4.5x). All Warp kernels on ``device``.
+    (coefficient of variation ~0.43 on Spot), which VNC-soft reads as curvature. Each of
+    ``relax_iterations`` iterations pairs collapses of edges shorter than 4/5 of the target length with
+    splits of edges longer than 4/3 of it (so vertex and face counts stay exactly those of the
+    decimation), flips edges toward valence 6, and moves every vertex tangentially toward the
+    area-weighted centroid of its one-ring, then back onto the target surface; finally vertices move
+    along their normals so faces straddle that surface instead of cutting under it. Tips, creases and
+    parts thinner than two edges are held. Measured on Spot: edge-length variation 0.43 -> 0.11, 1st
+    percentile of the smallest face angle 3 -> 38 degrees. All of it runs as Warp kernels on ``device``.
+
+    Faithfulness: a result that drops level-set components holding more than 1 % of the area (only the
+    largest is kept), or leaves more than 1 % of the input's area farther than two grid cells away
+    (parts thinner than the grid broke up: a thin sheet comes back with holes), is refused unless
+    ``allow_changes``. A repaired input (non-manifold edges or vertices, duplicate or degenerate faces,
+    inconsistent winding, several components joined by the level set) and a changed Euler
+    characteristic are warned about (:class:`RemeshWarning`); the report records all of it.
 
     Args:
-        mesh: a :class:`~vnc_warp.mesh.Mesh`, or anything :func:`~vnc_warp.mesh.load_mesh` accepts;
-            need not be watertight with ``sign="winding"``.
-        faces: target face count; None means the input's. The output is within 2% of it.
+        mesh: a :class:`~vnc_warp.mesh.Mesh`, or anything :func:`~vnc_warp.mesh.load_mesh` accepts
+            (also with the repairable problems above); need not be watertight with ``sign="winding"``.
+        faces: target face count; None means the input's. The output is within 2% of it (exactly it
+            on the surface path).
         resolution: grid nodes along the longest bounding-box side; None chooses it (see above).
-        device: where the signed distances, Warp marching cubes and the regularization run; None
-            means Warp's preferred device. Decimation and checks run on the host.
-        keep_area: scale the result about its area centroid to the input's surface area.
+        device: where everything but the decimation and the marching-cubes surface's component
+            labelling runs; None means Warp's preferred device.
+        keep_area: scale the result to the input's surface area.
         sign: ``"winding"`` (default; open meshes too) or ``"normal"`` (faster, watertight input).
         marching_cubes: ``"skimage"``, ``"warp"`` (``warp.geometry.IsoSurfaceMarchingCubes``, on the
             grid's device) or ``"auto"``: Warp's on CUDA, scikit-image's on the CPU.
         relax_iterations: iterations of the isotropic regularization; 0 returns the decimated
-            surface as it is (the behaviour before the regularization existed).
+            marching-cubes surface as it is.
+        allow_changes: accept a result that drops components or loses thin parts (see above).
+        return_report: also return the :class:`RemeshReport`.
 
     Returns:
-        A new :class:`~vnc_warp.mesh.Mesh` named ``"<name>:remeshed"``: watertight, manifold,
-        outward, no degenerate faces.
+        A new :class:`~vnc_warp.mesh.Mesh` named ``"<name>:remeshed"``: watertight, manifold, outward,
+        no degenerate faces; with ``return_report``, ``(mesh, report)``.
 
     Raises:
         ValueError: bad ``faces``, ``resolution``, ``sign``, ``marching_cubes`` or
             ``relax_iterations``; ``sign="normal"`` with an open mesh.
-        MeshError: the input cannot be loaded, or no attempt produced a valid surface of the
-            requested size (the message lists what went wrong in each attempt).
+        MeshError: the input cannot be loaded or repaired, the result would not be faithful (and
+            ``allow_changes`` is off), or no attempt produced a valid surface of the requested size
+            (the message lists what went wrong in each attempt).
     """
-    import fast_simplification
-
-    use_winding = sign_flag(sign)
-    if marching_cubes not in ("auto", "skimage", "warp"):
-        raise ValueError(f"sdf_remesh: marching_cubes must be 'auto', 'skimage' or 'warp', got {marching_cubes!r}")
-    m = load_mesh(mesh)
-    if sign == "normal" and not m.is_watertight:
-        raise ValueError(f"sdf_remesh: {m.name} has {m.topology.boundary.shape[0]} boundary edge(s); the normal "
-                         "sign is only right for watertight meshes, use sign='winding'")
-    target = m.num_faces if faces is None else int(faces)
-    if target < 8:
-        raise ValueError(f"sdf_remesh: target face count must be at least 8, got {faces!r}")
-    if resolution is not None and int(resolution) < 8:
-        raise ValueError(f"sdf_remesh: resolution must be at least 8 nodes, got {resolution!r}")
-    if int(relax_iterations) != relax_iterations or relax_iterations < 0:
-        raise ValueError(f"sdf_remesh: relax_iterations must be a non-negative integer, got {relax_iterations!r}")
-    dev = get_device(device)
-    method = marching_cubes if marching_cubes != "auto" else ("warp" if dev.is_cuda else "skimage")
-    wm = warp_mesh(m, dev, winding=bool(use_winding))
-    area_in = m.area()
-    lo = m.vertices.min(0).astype(np.float64)
-    hi = m.vertices.max(0).astype(np.float64)
-    side = float((hi - lo).max())
-    base = side / (int(resolution) - 1) if resolution is not None else auto_spacing(m, target, wm, dev)
-
-    failures = []
-    for shift, refine in _GRIDS:
-        h = base * refine
-        for _ in range(3):
-            origin = lo - (2.0 - np.asarray(shift)) * h
-            shape = tuple(int(n) for n in np.ceil((hi - origin) / h).astype(int) + 3)
-            grid = sample_grid(wm, origin, h, shape, band_factor=choose_band_factor(shape, area_in, h),
-                               use_winding=use_winding, device=dev)
-            wp.launch(_k.push_off_zero, dim=shape, inputs=[grid, _MIN_ABS_SDF * h], device=dev)
-            v_mc, f_mc = _marching_cubes(grid, origin, h, method)
-            if f_mc.shape[0]:
-                v_mc, f_mc = _largest_component(v_mc, f_mc)
-            if f_mc.shape[0] >= 1.2 * target or resolution is not None:
-                break
-            # aim at the oversampled count again, refining at most 4x per step and never past the cap
-            finer = max(h * 0.9 * np.sqrt(f_mc.shape[0] / (_OVERSAMPLE * target)), 0.25 * h,
-                        side / (_MAX_NODES - 1))
-            if finer >= h:
-                break
-            h = finer
-        if f_mc.shape[0] < (1.0 + _FACE_COUNT_TOLERANCE) * target:
-            failures.append(f"marching cubes gave {f_mc.shape[0]} faces at spacing {h:.4g}, fewer than the "
-                            f"{target} asked for; raise `resolution`")
-            if resolution is not None:
-                break
-            continue
-        regularizer = _Regularizer(v_mc, f_mc, dev) if relax_iterations else None
-        finish = dict(target=target, area=area_in if keep_area else None, name=f"{m.name}:remeshed",
-                      regularizer=regularizer, iterations=int(relax_iterations))
-        for agg in _AGGRESSIVENESS:
-            v, f = fast_simplification.simplify(v_mc, f_mc, target_count=target, agg=agg)
-            f = _drop_double_faces(f)
-            out, problem = _finish(v, f, **finish)
-            if problem is None:
-                return out
-            # cut what the decimation pinched, drop parts it cut off, and check once more
-            v, f = _largest_component(*_split_fans(v, f))
-            out, after_cut = _finish(v, f, **finish)
-            if after_cut is None:
-                return out
-            failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")
-    raise MeshError(f"sdf_remesh: {m.name}: no valid surface after {len(failures)} attempt(s): "
-                    + " | ".join(failures))
+    remesher = _Remesher(faces=faces, resolution=resolution, device=device, keep_area=keep_area, sign=sign,
+                         marching_cubes=marching_cubes, relax_iterations=relax_iterations,
+                         allow_changes=allow_changes)
+    out, report = remesher(mesh)
+    return (out, report) if return_report else out

@@ -27,7 +27,7 @@ from vnc_warp._device import get_device
 from vnc_warp.kernels import sdf as _k
 from vnc_warp.mesh import Mesh, load_mesh
 
-__all__ = ["signed_distance", "sdf_grid"]
+__all__ = ["signed_distance", "sdf_grid", "surface_samples", "inward_distances"]
 
 _SIGNS = ("winding", "normal")
 # the wp.Mesh of each Mesh, per device, kept while the Mesh lives
@@ -248,3 +248,59 @@ def sdf_grid(mesh: Any, resolution: int, *, padding: float = 0.1, device=None, s
     wm = warp_mesh(m, dev, winding=bool(use_winding))
     grid = sample_grid(wm, origin, spacing, shape, band_factor=factor, use_winding=use_winding, device=dev)
     return grid, origin, spacing
+
+
+def surface_samples(x: wp.array, tri: wp.array, count: int, *, seed: int = 0) -> tuple[wp.array, wp.array]:
+    """Centroids and unit normals of ``count`` faces drawn with probability proportional to their area.
+
+    The uniform numbers come from NumPy with a fixed ``seed``, so every device draws the same faces.
+
+    Args:
+        x: (V,) vec3 positions.
+        tri: (3F,) int32 corners.
+        count: number of samples.
+        seed: seed of the draw.
+
+    Returns:
+        ``(points, normals)``: (count,) vec3 arrays on ``x``'s device; normals follow the winding.
+    """
+    device = x.device
+    num_faces = tri.shape[0] // 3
+    area = wp.empty(num_faces, dtype=wp.float32, device=device)
+    wp.launch(_k.face_areas, dim=num_faces, inputs=[x, tri], outputs=[area], device=device)
+    cdf = wp.empty_like(area)
+    wp.utils.array_scan(area, cdf, inclusive=True)
+    u = np.random.default_rng(seed).random(count, dtype=np.float64).astype(np.float32)
+    points = wp.empty(count, dtype=wp.vec3, device=device)
+    normals = wp.empty(count, dtype=wp.vec3, device=device)
+    wp.launch(_k.area_samples, dim=count, inputs=[x, tri, cdf, wp.array(u, dtype=wp.float32, device=device)],
+              outputs=[points, normals], device=device)
+    return points, normals
+
+
+def inward_distances(wm: wp.Mesh, x: wp.array, tri: wp.array, count: int, *, seed: int = 0,
+                     span: float) -> np.ndarray:
+    """Distances through a closed surface along inward face normals, at area-weighted random faces.
+
+    ``count`` faces are drawn with probability proportional to their area (a fixed ``seed``: the same
+    faces on every device); from each face's centroid a ray runs along the inward normal to the next
+    surface hit. This is the surface's thickness where it is sampled: the diameter of a limb, the
+    width of a fin, the length of a tip.
+
+    Args:
+        wm: ``wp.Mesh`` of the surface (its BVH answers the rays).
+        x: (V,) vec3 positions of the surface, on ``wm``'s device.
+        tri: (3F,) int32 corners, outward winding.
+        count: number of rays.
+        seed: seed of the uniform numbers that pick the faces.
+        span: longest distance looked for (mesh units; the bounding-box diagonal or more).
+
+    Returns:
+        (count,) float64 distances in mesh units; 0 where a ray found no surface (an open mesh).
+    """
+    device = x.device
+    points, normals = surface_samples(x, tri, count, seed=seed)
+    out = wp.empty(count, dtype=wp.float32, device=device)
+    wp.launch(_k.inward_thickness, dim=count, inputs=[wm.id, points, normals, 1e-5 * span, 2.0 * span],
+              outputs=[out], device=device)
+    return np.maximum(out.numpy().astype(np.float64), 0.0)

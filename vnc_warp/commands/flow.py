@@ -19,12 +19,14 @@ def add_flow_options(p) -> None:
     p.add_argument("--max-iters", type=int, default=300, help="iteration cap per stage")
     p.add_argument("--step-fraction", type=float, default=0.25, help="eta: per-iteration move in mean edge lengths")
     p.add_argument("--no-remesh", action="store_true", help="skip SDF remeshing (input must be watertight)")
+    p.add_argument("--allow-changes", action="store_true",
+                   help="accept a first remesh that drops components or loses parts thinner than its grid")
 
 
 def flow_kwargs(args) -> dict:
     return dict(stages=args.stages, faces=args.faces, device=args.device, method=args.method,
                 scale_mode=args.scale_mode, max_iters=args.max_iters, step_fraction=args.step_fraction,
-                remesh=not args.no_remesh, progress=not args.no_progress)
+                remesh=not args.no_remesh, allow_changes=args.allow_changes, progress=not args.no_progress)
 
 
 def add_arguments(p) -> None:

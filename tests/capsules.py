@@ -1,0 +1,33 @@
+"""Small closed test shapes made of capsules (signed distance fields + scikit-image marching cubes): a T-posed
+body (torso, head, two arms, two legs) and a dumbbell, a few thousand faces each, for CPU tests of thin parts."""
+
+import numpy as np
+
+BODY = [((0.0, 0.0, 0.0), (0.0, 0.55, 0.0), 0.22), ((0.0, 0.85, 0.0), (0.0, 0.86, 0.0), 0.14),
+        ((0.15, 0.5, 0.0), (0.85, 0.5, 0.0), 0.07), ((-0.15, 0.5, 0.0), (-0.85, 0.5, 0.0), 0.07),
+        ((0.1, -0.05, 0.0), (0.14, -0.9, 0.0), 0.09), ((-0.1, -0.05, 0.0), (-0.14, -0.9, 0.0), 0.09)]
+DUMBBELL = [((-0.6, 0.0, 0.0), (-0.6, 0.0, 0.0), 0.35), ((0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.35),
+            ((-0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.1)]
+
+
+def _capsule(p: np.ndarray, a, b, r: float) -> np.ndarray:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1) - r
+
+
+def capsules(parts, *, nodes: int = 64, blend: float = 0.05, scale: float = 1.0):
+    """``(vertices (V, 3) float64, faces (F, 3) int64)`` of the smooth union of capsules ``(a, b, radius)``,
+    marching cubes on a ``nodes``^3 grid over [-1.1, 1.1]^3, scaled by ``scale``."""
+    from skimage.measure import marching_cubes
+
+    g = np.linspace(-1.1, 1.1, nodes)
+    p = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    d = _capsule(p, *parts[0])
+    for part in parts[1:]:  # polynomial smooth minimum
+        e = _capsule(p, *part)
+        h = np.clip(0.5 + 0.5 * (e - d) / blend, 0.0, 1.0)
+        d = e * (1 - h) + d * h - blend * h * (1 - h)
+    v, f, _, _ = marching_cubes(d, 0.0, spacing=(g[1] - g[0],) * 3)
+    return (v + g[0]) * scale, f.astype(np.int64)

@@ -1,0 +1,48 @@
+"""``python -m bench.flow_report`` on the CPU with two small generated meshes: the JSON, the Markdown table and the
+filmstrip it writes hold what the report promises, and the time budget skips (and lists) a mesh instead of
+running past it. No timing is asserted."""
+
+import json
+
+import numpy as np
+
+from bench import flow_report
+from vnc_warp.shapes import random_shape
+
+
+def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
+    """Two 4-stage runs at 600 faces: the first is kept with its filmstrip; every summary number is present and
+    agrees with the per-stage records (max |t_i - (1 - i/N)|, the smallest thickness ratio); the part breakdown
+    has the remesh and stage parts. Run again with a budget already spent after one mesh, the second is skipped
+    and named as skipped."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for k in range(2):
+        random_shape(3 + k, subdivisions=3).save(meshes / f"shape{k}.obj")
+    out = tmp_path / "out"
+    args = ["--meshes", str(meshes), "--all", "--stages", "4", "--max-faces", "600", "--device", "cpu",
+            "--filmstrips", "shape0.obj", "--out", str(out)]
+    assert flow_report.main(args) == 0
+    report = json.loads((out / "flow_report.json").read_text())
+    assert [r["mesh"] for r in report["runs"]] == ["shape0.obj", "shape1.obj"] and not report["skipped"]
+    for run in report["runs"]:
+        stages = run["stages"]
+        assert len(stages) == 5
+        dev = max(abs(r["t"] - (1 - r["index"] / 4)) for r in stages[1:])
+        assert np.isclose(run["max_dt"], dev)
+        ratios = [r["thickness_ratio"] for r in stages[1:]]
+        assert np.isclose(run["min_thickness_ratio"], min(ratios))
+        assert np.isfinite(run["remesh_alone"]["dS"]) and run["seconds"] > 0
+        assert {"remesh.sdf", "remesh.marching_cubes", "remesh.decimation", "remesh.checks", "stage.steps",
+                "stage.evaluations"} <= set(run["parts"])
+    assert (out / "filmstrip_shape0.png").stat().st_size > 1000
+    assert not (out / "filmstrip_shape1.png").exists()
+    md = (out / "flow_report.md").read_text()
+    assert "| shape0.obj |" in md and "S change, one remesh" in md and "remesh.sdf" in md
+
+    spent = tmp_path / "spent"
+    assert flow_report.main(args[:-1] + [str(spent), "--max-minutes", "1e-6"]) == 0
+    report = json.loads((spent / "flow_report.json").read_text())
+    assert [r["mesh"] for r in report["runs"]] == ["shape0.obj"]
+    assert [r["mesh"] for r in report["skipped"]] == ["shape1.obj"]
+    assert "Skipped (time budget): shape1.obj" in (spent / "flow_report.md").read_text()
