@@ -8,9 +8,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: The folders of the one installed namespace (pyproject maps kernels/ and training/ under vnc_warp).
 PACKAGES = {"vnc_warp": ROOT / "vnc_warp", "vnc_warp.kernels": ROOT / "kernels", "vnc_warp.training": ROOT / "training"}
-#: Import edges allowed to close a cycle, each with its reason. vnc_warp/flow.py reads ``__version__`` from the
-#: package (inside a function, so it loads); the flow is being rewritten under issue 21, which drops this edge.
-ALLOWED = {("vnc_warp.flow", "vnc_warp")}
 
 
 def _modules() -> dict[str, Path]:
@@ -86,14 +83,12 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_no_import_cycle():
-    """No cycle among the package's modules (those of ``ALLOWED`` removed first): ``training.model`` <->
+    """No cycle among the package's modules: ``training.model`` <->
     ``training.checkpoint`` and ``operators`` <-> ``torch`` were two on main at 8b29078 (this test found both)."""
     graph = import_graph()
     assert {"vnc_warp.operators", "vnc_warp._engine", "vnc_warp.kernels.vnc_terms", "vnc_warp.training.model"} <= set(
         graph)
     assert "vnc_warp.kernels.vnc_terms" in graph["vnc_warp._engine"]  # the graph sees imports through the namespace
-    for a, b in ALLOWED:
-        graph[a].discard(b)
     assert cycles(graph) == []
 
 

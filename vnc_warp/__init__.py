@@ -3,7 +3,7 @@
 
 import logging
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 # status messages of the library go to the "vnc_warp" logger; the application decides where (the CLI: stderr)
 logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -55,7 +55,8 @@ from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _ks
 
 from ._device import get_device
-from .mesh import Mesh, MeshError, load_mesh
+from ._engine import engine
+from .mesh import Mesh, MeshError, framed_mesh, load_mesh
 from .operators import vnc_soft
 from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
 from .trajectory import Trajectory, resume
@@ -376,14 +377,15 @@ def flow_steps(
 
 class _Engine:
     """The VNC operator as one stage of VNC-Flow calls it: Eq. (3) at per-vertex scales for the step, and the
-    VNC-Scale curves (Eq. 4) for ``S``, both at positions given on the device. Every operator call of the
-    stage loop goes through here (so a faster engine can take its place)."""
+    VNC-Scale curves (Eq. 4) for ``S``, both at positions given on the device. It holds the mesh's
+    :class:`~vnc_warp.Engine` for the stage: planned once, then replayed at every step's moving positions."""
 
-    def __init__(self, mesh: Mesh, taus: np.ndarray, kappa: float):
+    def __init__(self, mesh: Mesh, taus: np.ndarray, kappa: float, device):
         self.mesh, self.taus, self.kappa = mesh, taus, kappa
+        self.vnc = engine(mesh, device)
 
     def soft(self, x: wp.array, tau: wp.array) -> tuple[wp.array, wp.array]:
-        return vnc_soft(self.mesh, tau, kappa=self.kappa, positions=x)
+        return self.vnc.vnc_soft(tau, kappa=self.kappa, positions=x)
 
     def curve(self, x: wp.array):
         return scale_curve(self.mesh, self.taus, "soft", kappa=self.kappa, positions=x)
@@ -412,7 +414,7 @@ class _Stepper:
         self.x = self.surface.x
         self.x_next = wp.empty_like(self.x)
         self.ref = wp.zeros(1, dtype=wp.float32, device=device)
-        self.engine = _Engine(mesh, taus, p.kappa)
+        self.engine = _Engine(mesh, taus, p.kappa, device)
         self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.lam = None
         self.S_start = None
@@ -506,12 +508,8 @@ class _Stepper:
     def current(self) -> Mesh:
         """The current state in absolute coordinates (the device positions are relative to ``mesh.origin``)."""
         # a copy: on the CPU device .numpy() is a view of the array, which later steps overwrite
-        local = self.x.numpy().copy()
-        origin = self.mesh.origin
-        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
-        mesh = Mesh(vertices, self.mesh.faces, self.mesh.topology, self.mesh.name, origin=origin)
-        mesh._cache["local_vertices"] = (vertices, local)
-        return mesh
+        return framed_mesh(self.x.numpy().copy(), self.mesh.faces, self.mesh.topology, self.mesh.name,
+                           self.mesh.origin)
 
 
 def _as_saved(mesh: Mesh, origin: np.ndarray | None = None) -> Mesh:
@@ -822,6 +820,6 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
 
 
 def _version() -> str:
-    from . import __version__
+    from ._version import __version__
 
     return __version__

@@ -221,6 +221,18 @@ def _mesh(v64: np.ndarray, faces: np.ndarray, topology: EdgeTopology, name: str,
     return mesh
 
 
+def framed_mesh(local: np.ndarray, faces: np.ndarray, topology: EdgeTopology, name: str,
+                origin: np.ndarray) -> Mesh:
+    """A Mesh of float32 positions ``local`` relative to ``origin`` (a state computed in a frame, as VNC-Flow and
+    the remesher do): ``vertices`` are the absolute float32 positions and :attr:`Mesh.local_vertices` is ``local``
+    itself, not a float32 round trip through them."""
+    origin = np.asarray(origin, dtype=np.float64)
+    vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
+    mesh = Mesh(vertices, faces, topology, name, origin=origin)
+    mesh._derived["local_vertices"] = (vertices, np.ascontiguousarray(local, dtype=np.float32))
+    return mesh
+
+
 def _host_array(a: Any) -> np.ndarray:
     """A NumPy view or copy of an array-like: NumPy, lists, torch tensors on any device, Warp arrays."""
     if hasattr(a, "detach") and hasattr(a, "cpu"):  # torch.Tensor

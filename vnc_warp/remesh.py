@@ -56,7 +56,7 @@ import warp as wp
 from vnc_warp._device import get_device
 from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _k
-from vnc_warp.mesh import EdgeTopology, Mesh, MeshError, load_mesh
+from vnc_warp.mesh import EdgeTopology, Mesh, MeshError, framed_mesh, load_mesh
 from vnc_warp.sdf import choose_band_factor, inward_distances, sample_grid, sign_flag, surface_samples
 
 __all__ = ["sdf_remesh", "validate_surface", "RemeshReport", "RemeshWarning"]
@@ -863,11 +863,7 @@ class _HalfEdgeSurface:
         topo = EdgeTopology(edges.numpy().reshape(-1, 2).copy(), interior.numpy().reshape(-1, 4).copy(),
                             np.zeros((0, 2), np.int32))
         # copies: on the CPU device .numpy() is a view, and the state changes at the next call
-        local = self.x.numpy().copy()
-        vertices = np.ascontiguousarray(local.astype(np.float64) + origin, dtype=np.float32)
-        mesh = Mesh(vertices, self.tri.numpy().reshape(-1, 3).copy(), topo, name, origin=np.asarray(origin, np.float64))
-        mesh._cache["local_vertices"] = (vertices, local)
-        return mesh
+        return framed_mesh(self.x.numpy().copy(), self.tri.numpy().reshape(-1, 3).copy(), topo, name, origin)
 
     def regularize(self, surface: wp.Mesh, iterations: int, area: float, *, settle: bool = False) -> int:
         """``iterations`` rounds of relocations, flips and relaxation onto ``surface`` (a ``wp.Mesh``
