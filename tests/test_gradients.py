@@ -222,7 +222,9 @@ def test_hard_adjoint_grid_equals_bvh(device):
 def test_torch_op_replays_and_interleaves(device):
     """The torch op's forward and backward replay captured graphs once their shapes repeat (here on the CPU too), and
     stay right when calls interleave: two forwards at different positions, then their backwards in reverse order,
-    each giving the gradient of its own positions (the bit-identical gradient of a call run as usual)."""
+    each giving the gradient of its own positions: on the CPU the bit-identical gradient of a call run as usual; on
+    CUDA, whose adjoint scatters with float32 atomics in no fixed order, that gradient to 1e-5 of its largest
+    entry (an H200 differed by 9.5e-7 absolute)."""
     mesh = _mesh(4)
     V = mesh.num_vertices
     wH, wn = _objective_weights(V, 5)
@@ -241,16 +243,21 @@ def test_torch_op_replays_and_interleaves(device):
         v, loss = grad_of(v0, Tuning(replay=()))
         loss.backward()
         plain.append(v.grad.clone())
+
+    def same(got, want):
+        atol = 0.0 if torch.device(device).type == "cpu" else 1e-5 * float(want.abs().max())
+        torch.testing.assert_close(got, want, rtol=0, atol=atol)
+
     for k, v0 in enumerate(moved):  # calls 3 on replay one graph each for the forward and the backward
         v, loss = grad_of(v0, replay)
         loss.backward()
-        torch.testing.assert_close(v.grad, plain[k], rtol=0, atol=0)
+        same(v.grad, plain[k])
     assert len(vw.engine(mesh, device, tuning=replay).graphs()) == 2
     (va, la), (vb, lb) = grad_of(moved[1], replay), grad_of(moved[3], replay)
     lb.backward()
     la.backward()
-    torch.testing.assert_close(va.grad, plain[1], rtol=0, atol=0)
-    torch.testing.assert_close(vb.grad, plain[3], rtol=0, atol=0)
+    same(va.grad, plain[1])
+    same(vb.grad, plain[3])
 
 
 def test_torch_gradient_as_positions_and_scales_change(device):
