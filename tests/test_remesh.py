@@ -386,6 +386,15 @@ def test_thin_parts_lost_are_refused_or_reported():
     validate_surface(out)
 
 
+def test_thin_sheet_keeps_its_topology():
+    """Issue 20's 2 x 2 x 0.02 sheet (a closed box) at 3000 faces came back with holes (Euler characteristic
+    2 -> -6); now one closed surface of Euler characteristic 2 whose area is the box's within 2 %."""
+    sheet = trimesh.creation.box(extents=(2.0, 2.0, 0.02))
+    out = sdf_remesh(sheet, faces=3000, device="cpu").to_trimesh()
+    assert out.is_watertight and out.euler_number == 2
+    assert out.area == pytest.approx(sheet.area, rel=0.02)
+
+
 def test_repairable_input_is_repaired_and_reported():
     """Two overlapping cubes sharing no vertices, plus a fin face on one edge (non-manifold edge), a duplicated face
     and a degenerate face: load_mesh refuses it, sdf_remesh repairs it into one closed valid surface and its report
