@@ -6,7 +6,9 @@ Runs on the CPU device with graph replay on (``Tuning(replay=("cpu", "cuda"))``)
 replayed path a CUDA call takes. On the CPU a replayed graph runs its kernels inside ``wp.capture_launch``: the time
 spent there is measured apart and left out of the "host" column (on CUDA that call only enqueues the graph). Prints a
 table (median microseconds per call over ``--repeats`` runs of ``--calls`` calls) and, with ``--out``, writes it as
-JSON; ``--profile NAME`` prints a cProfile of one row instead.
+JSON; ``--profile NAME`` prints a cProfile of one row instead. ``--host-only`` replaces ``wp.capture_launch`` by a
+no-op after the warm-up (the results are then meaningless; the Python path is the same): the steadiest measure of the
+host cost on a loaded machine. ``--device cuda:0`` times the same calls on a GPU, where "total" is the figure.
 
     python -m bench.overhead                      # the table
     python -m bench.overhead --profile positions  # where that row's host time goes
@@ -88,10 +90,13 @@ def main(argv=None) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--profile", default=None, help="a row name: print its cProfile instead of the table")
     p.add_argument("--out", type=Path, default=None, help="JSON file to write the table to")
+    p.add_argument("--host-only", action="store_true", help="replayed graphs do nothing (host path only)")
     a = p.parse_args(argv)
     wp.config.quiet = True
     wp.init()
     fns = rows(a.subdivisions, a.device)
+    if a.host_only:
+        wp.capture_launch = lambda *args, **kwargs: None
     if a.profile:
         fn = fns[a.profile]
         prof = cProfile.Profile()
@@ -117,13 +122,14 @@ def main(argv=None) -> None:
             host.append((dt - _in_graph[0]) / a.calls * 1e6)
         table[name] = {"host_us": float(np.median(host)), "host_min_us": float(np.min(host)),
                        "total_us": float(np.median(total))}
-    print(f"icosphere({a.subdivisions}), device {a.device}, replay on; us per call, median (min) of {a.repeats} x "
-          f"{a.calls} calls; host = total less the replayed graphs")
+    print(f"icosphere({a.subdivisions}), device {a.device}, replay on{', graphs not run' if a.host_only else ''}; us per "
+          f"call, median (min) of {a.repeats} x {a.calls} calls; host = total less the replayed graphs")
     print("| call | host us | min | total us |\n|---|---|---|---|")
     for name, r in table.items():
         print(f"| {name} | {r['host_us']:.1f} | {r['host_min_us']:.1f} | {r['total_us']:.1f} |")
     if a.out:
-        a.out.write_text(json.dumps({"subdivisions": a.subdivisions, "device": a.device, "rows": table}, indent=1))
+        a.out.write_text(json.dumps({"subdivisions": a.subdivisions, "device": a.device, "host_only": a.host_only,
+                                     "rows": table}, indent=1))
 
 
 if __name__ == "__main__":
