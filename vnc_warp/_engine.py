@@ -144,27 +144,30 @@ class _Moving:
             wp.record_event(self.event)
         self.pending = True
 
-    def poll(self) -> np.ndarray | None:
-        """The bounds of the last call, once they have arrived (never waits), else None."""
+    def poll(self) -> list[float] | None:
+        """The bounds of the last call as Python floats, once they have arrived (never waits), else None."""
         if not self.pending or (self.event is not None and not self.event.is_complete):
             return None
         self.pending = False
-        return self.view.astype(np.float64)
+        return self.view.tolist()
 
-    def drifted(self, s: np.ndarray, t: Tuning) -> bool:
+    def drifted(self, s: list[float], t: Tuning) -> bool:
         """Whether the positions (or scales) measured in ``s`` call for a new plan: invalid values, a box moved more
-        than ``t.replan_cells`` cells past the plan's or shrunk, or scales changed by more than ``t.replan_ratio``."""
+        than ``t.replan_cells`` cells past the plan's or shrunk, or scales changed by more than ``t.replan_ratio``.
+        (Every call tests this: scalar float arithmetic, as NumPy's on 3-vectors would cost more than the rest of a
+        replayed call's host time.)"""
         if s[10] > 0 or s[11] > 0:
             return True
         b = self.bounds
         slack = t.replan_cells * t.cell_fraction * max(b.rmean, 1e-30)
-        if (s[0:3] < b.lo - slack).any() or (s[3:6] > b.hi + slack).any():
-            return True
-        ext0, ext1 = b.hi - b.lo, s[3:6] - s[0:3]
-        if ((ext1 * t.replan_ratio < ext0) & (ext0 > 0)).any():
-            return True
+        for i, (lo, hi) in enumerate(zip(b.lo.tolist(), b.hi.tolist())):
+            if s[i] < lo - slack or s[3 + i] > hi + slack:
+                return True
+            ext0 = hi - lo
+            if ext0 > 0 and (s[3 + i] - s[i]) * t.replan_ratio < ext0:
+                return True
         if self.tau is not None:
-            rmean = float(s[7]) / max(self.tau.shape[0], 1)
+            rmean = s[7] / max(self.tau.shape[0], 1)
             if not b.rmean / t.replan_ratio <= rmean <= b.rmean * t.replan_ratio:
                 return True
         return False
@@ -348,11 +351,10 @@ class Engine:
             if s is not None and plan.drifted(s, t):
                 self._forget(plan)
                 plan = None
-        tau_array = host_scalar(tau, "tau") is None
         if plan is None:
             radius = per_point(tau, self.num_vertices, self.device, "tau")
             bounds, strategy = bounds_of(x, radius)
-            plan = _Moving(self, key, bounds, strategy, tau_array)
+            plan = _Moving(self, key, bounds, strategy, host_scalar(tau, "tau") is None)
             self._plans[key] = plan
             while len(self._plans) > t.max_graphs:
                 self._forget(next(iter(self._plans.values())))

@@ -32,18 +32,17 @@ class _VncSoft(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, eng: Engine, tau, kappa: float):
         xw = wp.from_torch(x.detach(), dtype=wp.vec3)
         state, token = eng.soft_state(xw, tau, kappa)
+        # the backward pass reads these Warp arrays (``x`` is the op's own float32 copy, never changed in place):
+        # converting the tensors again would cost more host time than its replayed graph on a small mesh
+        ctx.eng, ctx.tau, ctx.kappa, ctx.xw, ctx.state, ctx.token = eng, tau, kappa, xw, state, token
         state = wp.to_torch(state)
-        ctx.eng, ctx.tau, ctx.kappa, ctx.state, ctx.token = eng, tau, kappa, state, token
-        ctx.save_for_backward(x)
         # views of one (V, 9) array; the sums of its last columns are what the backward pass reads
         return state[:, 0], state[:, 1:4]
 
     @staticmethod
     def backward(ctx, grad_H: torch.Tensor, grad_n: torch.Tensor):
-        (x,) = ctx.saved_tensors
         grads = torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1).to(torch.float32).contiguous()
-        gx = ctx.eng.soft_gradient(wp.from_torch(x.detach(), dtype=wp.vec3), ctx.tau, ctx.kappa,
-                                   wp.from_torch(ctx.state), wp.from_torch(grads), ctx.token)
+        gx = ctx.eng.soft_gradient(ctx.xw, ctx.tau, ctx.kappa, ctx.state, wp.from_torch(grads), ctx.token)
         return wp.to_torch(gx), None, None, None
 
 
@@ -84,7 +83,7 @@ def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0,
         gradient of that vertex split equally among them; a row no face uses gets NaN.
     """
     _check_verts(verts)
-    return vnc_soft_input(verts, _connectivity(verts, mesh), tau, kappa=kappa, tuning=tuning)
+    return _apply(_VncSoft, verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=True)
 
 
 def vnc_hard(verts: torch.Tensor, mesh, tau, *, kappa: float | None = 6.0,
