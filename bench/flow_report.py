@@ -73,9 +73,9 @@ def _exception(rec: dict, n: int) -> str | None:
     """Which documented exception a stage record is, if any."""
     if rec["index"] == n:
         return "last stage"
-    rm = rec.get("remesh") or {}
-    if rm and rm.get("euler") != rm.get("euler_in"):
-        return "topology change"
+    for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
+        if rm and rm.get("euler") != rm.get("euler_in"):
+            return "topology change"
     return None
 
 

@@ -28,8 +28,13 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``);
   a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
   merges) and thereby already took ``S`` below its window records the remeshed state with no flow step
-  (status ``remesh``); a stage that stops improving before its target (a handle pinching raises ``S``
-  until the remesh closes it) ends ``converged`` with the ``t`` it reached; ``max_iters`` likewise.
+  (status ``remesh``); a stage that stops improving before its target ends ``converged`` with the ``t`` it
+  reached; ``max_iters`` likewise. A stalled stage is remeshed from its best state and goes on (at most
+  ``stall_remeshes`` times), at half the step if ``S`` never fell below the stage's start; on a shape with a
+  handle whose ``S`` never fell, from its current state instead: a handle narrowing raises ``S`` (on a torus
+  the thin-part rule fattens the tube and closes the hole), and only a remesh where the flow went closes it.
+  A stage whose remesh, between stages or within, changed the topology records it in ``exception``; its
+  ``t`` may lie above its window, even above 1 (a torus: 1.58 at the stage that closed its hole).
 * **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages, one
   remesher for the whole trajectory, kept on the device; its report (path, Euler characteristic, components
   dropped, repairs, seconds per part) is the stage record's ``remesh``.
@@ -408,8 +413,10 @@ def _quantile90(values: wp.array, ref: wp.array) -> float:
 class _Stepper:
     """One stage's iteration: Eq. (5) (VNC) or a cotangent-Laplacian MCF baseline, on device positions ``x``."""
 
-    def __init__(self, mesh: Mesh, taus: np.ndarray, p: FlowParams, device, positions: wp.array | None = None):
+    def __init__(self, mesh: Mesh, taus: np.ndarray, p: FlowParams, device, positions: wp.array | None = None, *,
+                 step_scale: float = 1.0):
         self.mesh, self.p, self.device = mesh, p, device
+        self.step_scale = step_scale
         self.surface = _Surface.of(mesh, device, positions)
         self.x = self.surface.x
         self.x_next = wp.empty_like(self.x)
@@ -484,7 +491,7 @@ class _Stepper:
             V = self.mesh.num_vertices
             if self.lam is None:
                 q = _quantile90(H, self.ref)
-                self.lam = min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
+                self.lam = self.step_scale * min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
             wp.launch(_k.balanced_step, dim=V,
                       inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part],
                       outputs=[self.x_next], device=self.device)
@@ -705,6 +712,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     clock.lap("setup")
     history = [[0, S_a]]
     it, it_a, evaluations, stale, status = 0, 0, 1, 0, None
+    S_seg, step_scale = S_a, 1.0
     x_a = wp.clone(stepper.x)
     last_valid = mesh
     rate = None
@@ -747,11 +755,21 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                     status = "final" if final else "converged"
                     continue
                 # a stalled stage is remeshed from its best state and goes on (a state far from a regular
-                # tessellation stalls: the remains of a bunny's ears folded, a dumbbell's neck settled)
-                mesh, report = remesher(positions=x_a)
+                # tessellation stalls: the remains of a bunny's ears folded, a dumbbell's neck settled). A shape
+                # with a handle (Euler characteristic below 2) that never got below its start is passing
+                # through a rise of S, its hole narrowing until a remesh closes it (the genus-change
+                # exception): it is remeshed where the flow went, or every stage would restart from one state.
+                # Any other shape whose S never fell had a step too large for it (a near-sphere, where the
+                # 90th-percentile deviation is small and lambda sits at max_lambda): it goes on at half the step
+                stuck = not S_a < S_seg * (1.0 - _PROGRESS)
+                through = stuck and _euler(mesh) < 2
+                if stuck and not through:
+                    step_scale *= 0.5
+                mesh, report = remesher(positions=stepper.x if through else x_a)
                 within.append(report.to_dict())
-                stepper = _Stepper(mesh, taus, p, device)
+                stepper = _Stepper(mesh, taus, p, device, step_scale=step_scale)
                 S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
+                S_seg = S_a
                 x_a = wp.clone(stepper.x)
                 history.append([it, S_a])
                 clock.lap("remesh")
@@ -775,14 +793,20 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     if remesh and remesh["euler"] != remesh["euler_in"]:
         exception = (f"the remesh changed the topology (Euler characteristic {remesh['euler_in']} -> "
                      f"{remesh['euler']}: {remesh['why_level_set']})")
+    closed = [r for r in within if r["euler"] != r["euler_in"]]
+    if closed:
+        exception = ((exception + "; ") if exception else "") + (
+            f"a remesh within the stage changed the topology (Euler characteristic {closed[0]['euler_in']} -> "
+            f"{closed[-1]['euler']}: {closed[0]['why_level_set']})")
     if status == "remesh":
         exception = (exception or "the remesh") + f" took t to {S_a / S_init:.4f}, into or below this stage's window"
     elif status == "final":
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged"):
-        exception = (f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target "
-                     f"{max(target, 0.0) / S_init:.4f}); recording the t reached")
+        exception = ((exception + "; ") if exception else "") + (
+            f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f}); "
+            "recording the t reached")
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
                status=status, exception=exception, history=history, remeshes_within=within,
                **_facts(state, device, None if status == "collapsed" else stepper.x))
