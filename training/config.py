@@ -180,7 +180,15 @@ class DataConfig:
         num_workers: DataLoader worker processes.
         encoder_input: ``"stage0"``: the encoder sees the surface of the trajectory's stage 0 (t = 1,
             the detailed input) and the decoder the shape at the item's t, as at inference (C-VAEs);
-            ``"item"``: the item's own surface (auto-encoding every stage, the plain VAE).
+            ``"suffix"``: the encoder sees an earlier stage s of the same trajectory (stage 0 with probability
+            ``stage0_share``, else uniform over stages 1..j) and the item's t becomes ``t_j / t_s``, the time of
+            stage j on the trajectory that starts at stage s (Eq. 7 divides by the S of the start; a balanced
+            trajectory's suffix is a balanced trajectory); ``"item"``: the item's own surface (auto-encoding
+            every stage, the plain VAE).
+        stage0_share: with ``encoder_input="suffix"``, the share of items whose encoder input is stage 0.
+        symmetry: apply one of the 8 symmetries of the box's horizontal square (rotations by quarter turns about
+            y, with or without the mirror x -> -x), drawn per item, to the encoder surface, the queries and the
+            on-surface points alike (positions and normals); the box [-1, 1]^3 and the TSDF values are invariant.
     """
 
     num_surface: int = 8192
@@ -191,6 +199,8 @@ class DataConfig:
     batch_size: int = 8
     num_workers: int = 4
     encoder_input: str = "stage0"
+    stage0_share: float = 0.5
+    symmetry: bool = False
 
 
 @dataclass
@@ -274,8 +284,10 @@ class TrainConfig:
         if m.num_latents > d.num_surface:
             raise ValueError(f"model.num_latents ({m.num_latents}) exceeds data.num_surface ({d.num_surface}): "
                              "farthest-point sampling picks the latent queries among the surface points")
-        if d.encoder_input not in ("stage0", "item"):
-            raise ValueError(f"data.encoder_input must be 'stage0' or 'item', got {d.encoder_input!r}")
+        if d.encoder_input not in ("stage0", "suffix", "item"):
+            raise ValueError(f"data.encoder_input must be 'stage0', 'suffix' or 'item', got {d.encoder_input!r}")
+        if not 0.0 <= d.stage0_share <= 1.0:
+            raise ValueError(f"data.stage0_share must be in [0, 1], got {d.stage0_share}")
         if lo.tsdf not in ("l1", "mse"):
             raise ValueError(f"loss.tsdf must be 'l1' or 'mse', got {lo.tsdf!r}")
         if not lo.kl_time_ratio >= 1.0:

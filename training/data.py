@@ -462,6 +462,10 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         """``(shape_id, stage)`` of every item, without reading any file."""
         return [(sid, int(st["index"])) for sid, st in self.items] * self.repeats
 
+    def stage_times(self) -> list[float]:
+        """``t`` (Eq. 7) of every item, from the index, without reading any file."""
+        return [float(st["t"]) for _, st in self.items] * self.repeats
+
     def item_file(self, shape_id: int, stage: int) -> str:
         """The sample file of a shape's stage (for messages that must say where a value came from)."""
         for st in self.shapes[shape_id]["stages"]:

@@ -103,8 +103,8 @@ class ExperimentConfig:
         backbone: the VecSet backbone shared by all three models (``kind`` and ``pretrained`` are set
             per model): the baseline VAE is the C-VAE's size by construction.
         cvae1, vae, cvae2: training configurations; their ``model`` sections are replaced by
-            ``backbone`` and their ``data.encoder_input`` by the model's (stage 0 for the C-VAEs, the
-            item itself for the VAE). ``optim.total_steps`` is the step count, or the cap with a budget.
+            ``backbone`` and their ``data.encoder_input`` by the model's (the item itself for the VAE, stage 0
+            for C-VAE-II, stage 0 or a trajectory suffix's start for C-VAE-I). ``optim.total_steps`` is the step count, or the cap with a budget.
         repeats: passes over the training stages per data-loader epoch.
         distill_repeats: the same for the single distilled trajectory.
         train_budget_s: wall-clock seconds of C-VAE-I and, the same, of the VAE; None trains the configured steps.
@@ -241,7 +241,13 @@ def run_config(config: ExperimentConfig, kind: str, *, pretrained: str | None = 
     section = getattr(config, kind)
     cfg = TrainConfig.from_dict(section.to_dict())
     cfg.model = dataclasses.replace(config.backbone, kind=kind, pretrained=pretrained if kind == "cvae2" else None)
-    cfg.data = dataclasses.replace(cfg.data, encoder_input="item" if kind == "vae" else "stage0")
+    if kind == "vae":
+        encoder_input = "item"
+    elif kind == "cvae2":
+        encoder_input = "stage0"
+    else:
+        encoder_input = "suffix" if section.data.encoder_input == "suffix" else "stage0"
+    cfg.data = dataclasses.replace(cfg.data, encoder_input=encoder_input)
     cfg.name = f"{config.name}-{kind}"
     return cfg
 
@@ -249,7 +255,8 @@ def run_config(config: ExperimentConfig, kind: str, *, pretrained: str | None = 
 def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: int, queries: int, workers: int,
                    kl: float, linear_kl: bool, eik_queries: int, log_every: int, ckpt_every: int,
                    kl_time_ratio: float = 1.0, near_fraction: float = 0.5, on_surface: int = 0,
-                   surface_weight: float = 0.0, normal_weight: float = 0.0, fresh_fraction: float = 0.0) -> TrainConfig:
+                   surface_weight: float = 0.0, normal_weight: float = 0.0, fresh_fraction: float = 0.0,
+                   encoder_input: str = "stage0", symmetry: bool = False) -> TrainConfig:
     loss = LossConfig(kl_weight=kl, kl_schedule="linear" if linear_kl else "constant", kl_weight_start=0.0,
                       kl_warmup_start=steps // 10 if linear_kl else 0, kl_warmup_steps=steps // 2 if linear_kl else 0,
                       kl_time_ratio=kl_time_ratio, eikonal_weight=0.01, eikonal_queries=eik_queries,
@@ -258,23 +265,29 @@ def _train_section(*, lr: float, steps: int, warmup: int, batch: int, surface: i
                                                     min_lr_ratio=0.1),
                        data=DataConfig(num_surface=surface, num_queries=queries, batch_size=batch, num_workers=workers,
                                        near_fraction=near_fraction, num_on_surface=on_surface,
-                                       fresh_fraction=fresh_fraction),
+                                       fresh_fraction=fresh_fraction, encoder_input=encoder_input,
+                                       symmetry=symmetry),
                        bf16=True, log_every=log_every, ckpt_every=ckpt_every)
 
 
 # The recipe of every model (issue 24): half the queries near the surface, half of the others drawn afresh for
 # every item (labelled from the stage's TSDF grid), the surface and normal terms, the narrow posterior at init
 # (ModelConfig.logvar_init), a decoder that starts from empty space (ModelConfig.sdf_init = the truncation);
-# C-VAE-I's KL prior contracts toward t = 0 (the radial structure).
+# C-VAE-I's KL prior contracts toward t = 0 (the radial structure). C-VAE-I encodes every stage as the start of
+# its trajectory's suffix (SuffixInput: ~N+1 times the encoder inputs of stage 0 alone, against which it memorised
+# its ~70 training shapes and decoded blobs for unseen ones), and C-VAE-I and the VAE alike see each item under one
+# of the box's 8 horizontal symmetries (the same augmentation for both: the baseline's budget stays equal).
 _RECIPE = dict(near_fraction=0.5, fresh_fraction=0.5, surface_weight=1.0, normal_weight=0.05)
 
 
 def _sections(*, lr: float, steps: int, warmup: int, common: dict, distill: dict | None = None) -> dict:
     """The three models' training sections: beta_kl 1e-3 warmed up for C-VAE-I (with the temporal prior, ratio
-    100) and the VAE alike, 1e-4 for C-VAE-II; ``distill`` overrides ``common`` for C-VAE-II."""
+    100) and the VAE alike, 1e-4 for C-VAE-II; suffix inputs for C-VAE-I, the box symmetries for C-VAE-I and the
+    VAE; ``distill`` overrides ``common`` for C-VAE-II."""
     kw = dict(lr=lr, steps=steps, warmup=warmup)
-    return {"cvae1": _train_section(**kw, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, **common),
-            "vae": _train_section(**kw, kl=1e-3, linear_kl=True, **common),
+    return {"cvae1": _train_section(**kw, kl=1e-3, linear_kl=True, kl_time_ratio=100.0, encoder_input="suffix",
+                                    symmetry=True, **common),
+            "vae": _train_section(**kw, kl=1e-3, linear_kl=True, symmetry=True, **common),
             "cvae2": _train_section(**kw, kl=1e-4, linear_kl=False, **(distill or common))}
 
 

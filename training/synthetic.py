@@ -88,6 +88,10 @@ class EllipsoidTrajectories(Dataset):
         """``(shape_id, stage)`` of every item, without generating them."""
         return [divmod(i, self.num_stages) for i in range(len(self))]
 
+    def stage_times(self) -> list[float]:
+        """``t`` of every item, without generating them."""
+        return [1.0 - (i % self.num_stages) / (self.num_stages - 1) for i in range(len(self))]
+
     def axes(self, shape_id: int, t: float) -> np.ndarray:
         """(3,) semi-axes of shape ``shape_id`` at time ``t``."""
         a = self.axes0[shape_id]

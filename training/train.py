@@ -69,7 +69,7 @@ from .config import TrainConfig
 from .losses import cvae_loss, gradient_queries, kl_weight_at, tsdf_loss
 from .model import build_model
 
-__all__ = ["train", "open_dataset", "Stage0Input", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
+__all__ = ["train", "open_dataset", "Stage0Input", "SuffixInput", "Symmetric", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
            "TrainingInterrupted", "RUNTIME_KEYS", "SCHEDULE_KEYS"]
 
 REQUIRED_KEYS = ("surface", "queries", "tsdf", "near", "t")
@@ -91,6 +91,14 @@ class TrainingInterrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM ended the run after a checkpoint was written; the message names the step and file."""
 
 
+def _item_ids(base: Dataset) -> list[tuple[int, int]]:
+    """``(shape_id, stage)`` of every item of ``base``: from ``base.item_ids()`` when it exists, otherwise from
+    reading every item once."""
+    if hasattr(base, "item_ids"):
+        return [(int(s), int(st)) for s, st in base.item_ids()]
+    return [(int(it["shape_id"]), int(it["stage"])) for it in (base[i] for i in range(len(base)))]
+
+
 class Stage0Input(Dataset):
     """The items of ``base`` with ``surface`` taken from the same shape's stage 0 (t = 1).
 
@@ -101,16 +109,13 @@ class Stage0Input(Dataset):
 
     def __init__(self, base: Dataset) -> None:
         self.base = base
-        if hasattr(base, "item_ids"):
-            ids = [(int(s), int(st)) for s, st in base.item_ids()]
-        else:
-            ids = [(int(it["shape_id"]), int(it["stage"])) for it in (base[i] for i in range(len(base)))]
-        stage0 = {sid: i for i, (sid, st) in enumerate(ids) if st == 0}
-        missing = sorted({sid for sid, _ in ids} - set(stage0))
+        self.ids = _item_ids(base)
+        stage0 = {sid: i for i, (sid, st) in enumerate(self.ids) if st == 0}
+        missing = sorted({sid for sid, _ in self.ids} - set(stage0))
         if missing:
             raise ValueError(f"shape id(s) {missing[:5]} have no stage-0 item, the encoder input of "
                              "data.encoder_input='stage0'")
-        self.source = [stage0[sid] for sid, _ in ids]
+        self.source = [stage0[sid] for sid, _ in self.ids]
 
     def __len__(self) -> int:
         return len(self.source)
@@ -126,9 +131,109 @@ class Stage0Input(Dataset):
         return item
 
 
+class SuffixInput(Stage0Input):
+    """The items of ``base`` encoded from an earlier stage of their own trajectory, at the time relative to it.
+
+    Item ``i`` (stage j of a shape, time ``t_j``) takes the surface of stage s <= j of the same shape, stage 0
+    with probability ``stage0_share`` and otherwise one of the stages 1..j drawn uniformly, and its ``t`` becomes
+    ``t_j / t_s``. Eq. (7) measures time as the share of the start's total VNC-AUC left, ``t = S / S_init``; the
+    trajectory that starts at stage s has ``S_init = S_s`` and passes stage j at ``S_j / S_s = t_j / t_s``, with
+    equal stage budgets again (``1 - (j - s) / (N - s)`` for a balanced flow). So every stage is an encoder input
+    with a true target at every later time, not only the ~one stage 0 per shape that :class:`Stage0Input` shows
+    the encoder. The draw depends on ``(seed, epoch, i)`` only (reproducible, resumable, worker-safe). Needs the
+    stages' times: ``base.stage_times()`` when it exists, otherwise the items' ``t`` read once.
+
+    Args:
+        base: the trajectory items (``shape_id``, ``stage``, ``t``, ``surface``, ...).
+        stage0_share: probability of encoding stage 0, as at inference.
+        seed: base seed of the draws.
+    """
+
+    def __init__(self, base: Dataset, *, stage0_share: float = 0.5, seed: int = 0) -> None:
+        super().__init__(base)
+        if not 0.0 <= stage0_share <= 1.0:
+            raise ValueError(f"SuffixInput: stage0_share must be in [0, 1], got {stage0_share}")
+        self.stage0_share, self.seed, self.epoch = float(stage0_share), int(seed), 0
+        times = base.stage_times() if hasattr(base, "stage_times") else [float(base[i]["t"]) for i in range(len(base))]
+        first: dict[tuple[int, int], int] = {}
+        for i, key in enumerate(self.ids):
+            first.setdefault(key, i)
+        self.first = first
+        self.time = {key: float(times[i]) for key, i in first.items()}
+        # A stage at t = 0 (an exact base shape) starts no suffix: t_j / t_s has no value there.
+        stages: dict[int, list[int]] = {}
+        for sid, st in first:
+            if self.time[(sid, st)] > 0.0:
+                stages.setdefault(sid, []).append(st)
+        self.earlier = {key: [s for s in sorted(stages.get(key[0], [])) if 0 < s <= key[1]] for key in first}
+
+    def set_epoch(self, epoch: int) -> None:
+        super().set_epoch(epoch)
+        self.epoch = int(epoch)
+
+    def start(self, i: int) -> int:
+        """The stage whose surface item ``i`` is encoded from, in this epoch."""
+        sid, st = self.ids[i]
+        earlier = self.earlier[(sid, st)]
+        rng = np.random.default_rng([self.seed, self.epoch, int(i), 7])
+        if not earlier or rng.random() < self.stage0_share:
+            return 0
+        return int(earlier[rng.integers(len(earlier))])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        sid, st = self.ids[i]
+        s = self.start(i)
+        if s == 0:
+            return super().__getitem__(i)
+        item = dict(self.base[i])
+        item["surface"] = self.base[self.first[(sid, s)]]["surface"]
+        t = min(1.0, self.time[(sid, st)] / self.time[(sid, s)])
+        item["t"] = torch.tensor(t, dtype=torch.float32)
+        return item
+
+
+# The 8 symmetries of the square [-1, 1]^2 in the horizontal (x, z) plane, y (up) fixed: quarter turns, mirrored
+# or not. Each maps the box [-1, 1]^3 onto itself and keeps distances, so TSDF values stay exact.
+_SQUARE = [np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]], dtype=np.float32) @ np.diag([m, 1, 1]).astype(np.float32)
+           for c, s in ((1, 0), (0, 1), (-1, 0), (0, -1)) for m in (1, -1)]
+
+
+class Symmetric(Dataset):
+    """The items of ``base`` under one of the 8 symmetries of the box's horizontal square, drawn per item.
+
+    The same matrix moves the encoder surface, the queries and the on-surface points (positions and normals), so
+    the TSDF targets, the ``near`` flags and ``t`` hold as they are. The draw depends on ``(seed, epoch, i)``.
+    """
+
+    def __init__(self, base: Dataset, *, seed: int = 0) -> None:
+        self.base, self.seed, self.epoch = base, int(seed), 0
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def set_epoch(self, epoch: int) -> None:
+        if hasattr(self.base, "set_epoch"):
+            self.base.set_epoch(epoch)
+        self.epoch = int(epoch)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        item = dict(self.base[i])
+        k = int(np.random.default_rng([self.seed, self.epoch, int(i), 8]).integers(len(_SQUARE)))
+        if k == 0:
+            return item
+        r = torch.from_numpy(_SQUARE[k].T.copy())  # row vectors: p' = p @ R^T
+        item["queries"] = item["queries"] @ r
+        for key in ("surface", "on_surface"):
+            if key in item:
+                v = item[key]
+                item[key] = torch.cat([v[:, :3] @ r, v[:, 3:6] @ r, v[:, 6:]], dim=1)
+        return item
+
+
 def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, split: str = "train") -> Dataset:
     """The training dataset: ``data`` itself when it is a Dataset, else a ``TrajectoryDataset`` over
-    the folder ``data``; wrapped in :class:`Stage0Input` when ``config.data.encoder_input == "stage0"``.
+    the folder ``data``; wrapped in :class:`Stage0Input` or :class:`SuffixInput` by ``config.data.encoder_input``
+    and in :class:`Symmetric` with ``config.data.symmetry``.
 
     Raises:
         FileNotFoundError: the folder or its ``index.json`` is missing.
@@ -148,7 +253,12 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
                                     near_fraction=config.data.near_fraction,
                                     num_on_surface=config.data.num_on_surface,
                                     fresh_fraction=config.data.fresh_fraction, split=split, seed=config.seed)
-    return Stage0Input(dataset) if config.data.encoder_input == "stage0" else dataset
+    d = config.data
+    if d.encoder_input == "stage0":
+        dataset = Stage0Input(dataset)
+    elif d.encoder_input == "suffix":
+        dataset = SuffixInput(dataset, stage0_share=d.stage0_share, seed=config.seed)
+    return Symmetric(dataset, seed=config.seed) if d.symmetry else dataset
 
 
 def lr_factor(step: int, *, warmup_steps: int, total_steps: int, min_lr_ratio: float) -> float:
@@ -440,7 +550,9 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
         state = load_checkpoint(ckpt_path)
         if state["config"]["model"] != config.to_dict()["model"]:
             raise ValueError(f"resume: model config of {ckpt_path} differs from the given config")
-        refused, changed = _setting_changes(state["config"], config.to_dict())
+        # Settings added after the checkpoint was written take their defaults, as from_dict gives them.
+        refused, changed = _setting_changes({**_flat(TrainConfig().to_dict()), **_flat(state["config"])},
+                                            _flat(config.to_dict()))
         if refused:
             raise TrainingError(f"resume: {ckpt_path} (step {state['step']}) was trained with other settings: "
                                 f"{'; '.join(refused)}. Resuming would mix them into the stored run: give the "

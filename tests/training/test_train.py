@@ -25,7 +25,7 @@ from vnc_warp.training.config import named_config
 from vnc_warp.training.inference import decode_mesh, extract_mesh
 from vnc_warp.training.model import build_model
 from vnc_warp.training.synthetic import EllipsoidTrajectories, ellipsoid_sdf
-from vnc_warp.training.train import Stage0Input, lr_factor, train
+from vnc_warp.training.train import Stage0Input, SuffixInput, Symmetric, lr_factor, open_dataset, train
 
 OVERFIT_STEPS = 150
 LOSS_DROP = 5.0
@@ -247,6 +247,91 @@ def test_stage0_input_wrapper():
 
     with pytest.raises(ValueError, match="no stage-0 item"):
         Stage0Input(NoStage0())
+
+
+def _fit_axes(points: np.ndarray) -> np.ndarray:
+    """Semi-axes of the origin-centred, axis-aligned ellipsoid through ``points`` (least squares on x^2/a^2 = 1)."""
+    inv, *_ = np.linalg.lstsq(points**2, np.ones(len(points)), rcond=None)
+    return 1.0 / np.sqrt(inv)
+
+
+def test_suffix_input_is_a_trajectory_from_an_earlier_stage():
+    """SuffixInput encodes an earlier stage s <= j of the item's own trajectory and relabels t_j as t_j / t_s
+    (Eq. 7 from the suffix's start). Oracle: an ellipsoid trajectory's axes are r + t (a - r), so the suffix
+    from s, whose start has axes a_s, reaches the item's shape at exactly r + (t_j / t_s)(a_s - r); the axes are
+    fitted independently from the encoder's and the target's points. Stage 0 is drawn with about the given share,
+    every earlier stage occurs, and the draw repeats for one epoch and changes across epochs."""
+    ds = EllipsoidTrajectories(num_shapes=3, num_stages=6, num_surface=400, num_queries=20, num_on_surface=400,
+                               seed=2)
+    wrapped = SuffixInput(ds, stage0_share=0.25, seed=5)
+    starts, relabelled = [], 0
+    for epoch in range(8):
+        wrapped.set_epoch(epoch)
+        for i in range(len(ds)):
+            sid, st = ds.item_ids()[i]
+            item = wrapped[i]
+            s = wrapped.start(i)
+            starts.append((st, s))
+            assert 0 <= s <= st and int(item["shape_id"]) == sid and int(item["stage"]) == st
+            t_j, t_s = 1.0 - st / 5, 1.0 - s / 5
+            if t_s <= 0:
+                continue
+            assert float(item["t"]) == pytest.approx(min(1.0, t_j / t_s), abs=1e-6)
+            a_s = _fit_axes(item["surface"][:, :3].double().numpy())
+            a_j = _fit_axes(item["on_surface"][:, :3].double().numpy())
+            r = float(np.prod(ds.axes0[sid]) ** (1 / 3))
+            assert np.allclose(a_j, r + float(item["t"]) * (a_s - r), rtol=1e-4)
+            relabelled += s > 0
+    later = [s for st, s in starts if st >= 3]
+    assert relabelled > 0 and 0.12 < later.count(0) / len(later) < 0.4
+    assert {s for st, s in starts if st == 4} == {0, 1, 2, 3, 4}
+    wrapped.set_epoch(3)
+    first = [wrapped.start(i) for i in range(len(ds))]
+    assert first == [wrapped.start(i) for i in range(len(ds))]
+    wrapped.set_epoch(4)
+    assert first != [wrapped.start(i) for i in range(len(ds))]
+
+
+def test_symmetric_moves_every_point_set_by_one_box_symmetry():
+    """Symmetric applies one of the 8 symmetries of the box's horizontal square per item: encoder surface,
+    queries and on-surface points (positions and normals) by the same orthogonal matrix with y fixed and
+    |entries| in {0, 1} (the box maps onto itself), TSDF, near and t untouched; the moved on-surface points lie on
+    the moved ellipsoid (oracle: the analytic implicit x^T R diag(a^-2) R^T x = 1); all 8 occur over 3 epochs."""
+    ds = EllipsoidTrajectories(num_shapes=4, num_stages=4, num_surface=64, num_queries=50, num_on_surface=64, seed=1)
+    sym = Symmetric(Stage0Input(ds), seed=3)
+    plain = Stage0Input(ds)
+    seen = set()
+    for i in [*range(len(ds))] * 3:
+        if i == 0:
+            sym.set_epoch(sym.epoch + 1)
+        a, b = plain[i], sym[i]
+        r, *_ = np.linalg.lstsq(a["queries"].double().numpy(), b["queries"].double().numpy(), rcond=None)
+        assert np.allclose(r.T @ r, np.eye(3), atol=1e-5) and abs(r[1, 1] - 1) < 1e-5
+        assert np.allclose(np.abs(r), np.round(np.abs(r)), atol=1e-5)
+        seen.add(tuple(np.round(r).astype(int).ravel()))
+        for key in ("surface", "on_surface"):
+            assert torch.allclose(b[key][:, :3], a[key][:, :3] @ torch.from_numpy(r).float(), atol=1e-5)
+            assert torch.allclose(b[key][:, 3:6], a[key][:, 3:6] @ torch.from_numpy(r).float(), atol=1e-5)
+        assert torch.equal(a["tsdf"], b["tsdf"]) and torch.equal(a["near"], b["near"]) and a["t"] == b["t"]
+        sid, st = ds.item_ids()[i]
+        axes = ds.axes(sid, float(a["t"]))
+        x = b["on_surface"][:, :3].double().numpy() @ r.T  # back to the ellipsoid's own frame
+        assert np.allclose(((x / axes) ** 2).sum(1), 1.0, atol=1e-4)
+    assert len(seen) == 8
+
+
+def test_open_dataset_wraps_by_config():
+    """data.encoder_input = 'suffix' and data.symmetry pick SuffixInput and Symmetric; an unknown encoder input
+    is refused by the config."""
+    ds = EllipsoidTrajectories(num_shapes=1, num_stages=3)
+    cfg = named_config("tiny")
+    cfg.data = dataclasses.replace(cfg.data, encoder_input="suffix", symmetry=True, stage0_share=0.3)
+    wrapped = open_dataset(ds, cfg)
+    assert isinstance(wrapped, Symmetric) and isinstance(wrapped.base, SuffixInput)
+    assert wrapped.base.stage0_share == 0.3
+    cfg.data = dataclasses.replace(cfg.data, encoder_input="stage1")
+    with pytest.raises(ValueError, match="encoder_input"):
+        cfg.validate()
 
 
 def test_cvae2_trains_on_a_pretrained_vae(tmp_path):
