@@ -172,6 +172,7 @@ def line_plot(
     path: str | os.PathLike | None = None,
     vector: str | None = "pdf",
     size: tuple[int, int] = (1000, 620),
+    legend: str = "best",
 ) -> np.ndarray:
     """Lines for several named series, e.g. mean VNC against scale (Fig. 6) or against flow step (Fig. 8a).
 
@@ -185,6 +186,8 @@ def line_plot(
         path: write the PNG there, and the ``vector`` copy beside it.
         vector: "pdf", "svg" or None.
         size: ``(width, height)`` of the PNG in pixels (:data:`DPI` per inch).
+        legend: a Matplotlib legend location inside the axes, or ``"outside"``: right of the axes, where no line
+            can run under it (many series, or lines that fill the axes).
 
     Returns:
         ``(height, width, 3) uint8``.
@@ -207,7 +210,10 @@ def line_plot(
         if logy:
             log_axis(ax, "y")
         if any(name for name, *_ in data):
-            ax.legend(loc="best")
+            if legend == "outside":
+                ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+            else:
+                ax.legend(loc=legend)
         return save_figure(fig, path, vector=vector)
 
 
