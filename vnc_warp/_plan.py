@@ -136,8 +136,9 @@ def stats_init(device) -> wp.array:
     return wp.array(np.array([np.inf] * 3 + [-np.inf] * 4 + [0.0] * 5, dtype=np.float32), device=device)
 
 
-# Threads of :func:`kernels.vnc_grid.point_stats` at most, and of the fixed-order fold of their sums: two short
-# passes instead of one thread walking 4096 partial sums.
+# Threads of :func:`kernels.vnc_grid.point_stats` at most, and of the fixed-order fold of their sums on CUDA: two
+# short passes instead of one thread walking 4096 partial sums. On the CPU one pass adds them in thread order, the
+# order in which the single CPU thread's atomics added them before, so CPU results stay what they were.
 STATS_THREADS = 4096
 STATS_FOLD = 64
 
@@ -159,8 +160,8 @@ def launch_stats(x: wp.array, radius: wp.array, length: wp.array | None, stats: 
     stride = int(min(max(x.shape[0], radius.shape[0], length.shape[0]), STATS_THREADS))
     wp.launch(_g.point_stats, dim=stride, inputs=[x, radius, length, stride], outputs=[stats, partial],
               device=device, record_tape=False)
-    folded = partial[STATS_THREADS:]
-    wp.launch(_g.fold_sums, dim=STATS_FOLD, inputs=[partial[:stride]], outputs=[folded], device=device,
+    folded = partial[STATS_THREADS:STATS_THREADS + (STATS_FOLD if device.is_cuda else 1)]
+    wp.launch(_g.fold_sums, dim=folded.shape[0], inputs=[partial[:stride]], outputs=[folded], device=device,
               record_tape=False)
     wp.launch(_g.stats_sums, dim=1, inputs=[folded], outputs=[stats], device=device, record_tape=False)
 
