@@ -597,29 +597,6 @@ def phong_point(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int3
     return 0.25 * q + 0.75 * (u * t0 + v * t1 + w * t2)
 
 
-@wp.kernel(enable_backward=False)
-def vertex_normals(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
-    """Per face: add its area-weighted normal (its cross product) to its three corners (``out`` zeroed first;
-    normalize after)."""
-    f = wp.tid()
-    a = tri[3 * f]
-    b = tri[3 * f + 1]
-    c = tri[3 * f + 2]
-    n = wp.cross(x[b] - x[a], x[c] - x[a])
-    wp.atomic_add(out, a, n)
-    wp.atomic_add(out, b, n)
-    wp.atomic_add(out, c, n)
-
-
-@wp.kernel(enable_backward=False)
-def normalize_vectors(v: wp.array(dtype=wp.vec3)):
-    """Per entry: scale to unit length (zero stays zero)."""
-    i = wp.tid()
-    n = wp.length(v[i])
-    if n > 0.0:
-        v[i] = v[i] / n
-
-
 @wp.func
 def surface_target(surface: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                    normals: wp.array(dtype=wp.vec3), p: wp.vec3, n: wp.vec3, max_dist: float, flat_cos: float,
@@ -680,11 +657,12 @@ def tangential_relax(
     vertex would turn more than ``acos(min_cos)`` with its neighbours held fixed (unless it then
     agrees that well with the vertex normal: a near-degenerate face may turn freely into shape), or
     if the closest point lies on a face facing away from the vertex normal (the other side of a thin
-    part). Adds the distance moved to ``moved[0]``.
+    part). Writes the distance moved to ``moved[v]`` (summed afterwards in a fixed order).
     """
     v = wp.tid()
     p = x[v]
     out[v] = p
+    moved[v] = wp.float64(0.0)
     h0 = out_he[v]
     if h0 < 0:
         return
@@ -725,7 +703,7 @@ def tangential_relax(
                     break
         if ok != 0:
             out[v] = target
-            wp.atomic_add(moved, 0, wp.float64(wp.length(target - p)))
+            moved[v] = wp.float64(wp.length(target - p))
             return
         step = 0.5 * step
 
@@ -826,12 +804,17 @@ def check_rings(valence: wp.array(dtype=wp.int32), errors: wp.array(dtype=wp.int
 
 @wp.kernel(enable_backward=False)
 def face_measures(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), sliver: float, tiny: float,
-                  sums: wp.array(dtype=wp.float64), centroid: wp.array(dtype=wp.vec3d), bad: wp.array(dtype=wp.int32)):
-    """Per face: add its area to ``sums[0]``, its signed volume about the origin to ``sums[1]`` and its
-    area-weighted centroid to ``centroid[0]`` (all zeroed first, float64); count in ``bad[0]`` faces with a
-    non-finite corner and in ``bad[1]`` slivers (``2 area <= sliver * sum of squared edge lengths`` or
-    ``2 area <= tiny``), the faces Warp's closest-point queries skip."""
+                  area: wp.array(dtype=wp.float64), volume: wp.array(dtype=wp.float64),
+                  centroid: wp.array(dtype=wp.vec3d), bad: wp.array(dtype=wp.int32)):
+    """Per face: its area, its signed volume about the origin and its area-weighted centroid (float64; zero for
+    a face with a non-finite corner), summed afterwards in a fixed order (:func:`vnc_warp._reduce.ordered_sum`);
+    count in ``bad[0]`` faces with a non-finite corner and in ``bad[1]`` slivers (``2 area <= sliver * sum of
+    squared edge lengths`` or ``2 area <= tiny``), the faces Warp's closest-point queries skip (``bad`` zeroed
+    first)."""
     f = wp.tid()
+    area[f] = wp.float64(0.0)
+    volume[f] = wp.float64(0.0)
+    centroid[f] = wp.vec3d(wp.float64(0.0))
     a = x[tri[3 * f]]
     b = x[tri[3 * f + 1]]
     c = x[tri[3 * f + 2]]
@@ -847,9 +830,9 @@ def face_measures(x: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.int32), sli
     sq = wp.length_sq(bd - ad) + wp.length_sq(cd - ad) + wp.length_sq(cd - bd)
     if area2 <= wp.float64(sliver) * sq or area2 <= wp.float64(tiny):
         wp.atomic_add(bad, 1, 1)
-    wp.atomic_add(sums, 0, wp.float64(0.5) * area2)
-    wp.atomic_add(sums, 1, wp.dot(ad, wp.cross(bd, cd)) / wp.float64(6.0))
-    wp.atomic_add(centroid, 0, (wp.float64(0.5) * area2 / wp.float64(3.0)) * (ad + bd + cd))
+    area[f] = wp.float64(0.5) * area2
+    volume[f] = wp.dot(ad, wp.cross(bd, cd)) / wp.float64(6.0)
+    centroid[f] = (wp.float64(0.5) * area2 / wp.float64(3.0)) * (ad + bd + cd)
 
 
 @wp.kernel(enable_backward=False)

@@ -12,14 +12,25 @@ def auc_step(h0: float, h1: float, mean0: float, mean1: float, t0: float, t1: fl
 
 
 @wp.kernel(enable_backward=False)
-def column_mean(H: wp.array2d(dtype=float), stride: int, inv_count: float, mean: wp.array(dtype=float)):
-    """``mean[s] += sum_k H[s, k] / V`` over the columns ``k = c, c + stride, ...``: the global mean curve of the
-    VNC-Scale curves (``mean`` zeroed first; one atomic per thread rather than per element)."""
+def column_sums(H: wp.array2d(dtype=float), inv_count: float, partial: wp.array2d(dtype=float)):
+    """``partial[s, c] = sum_k H[s, k] / V`` over the columns ``k = c, c + P, ...`` (``P = partial.shape[1]``), added
+    in index order: the first pass of the global mean curve of the VNC-Scale curves (:func:`row_sums`)."""
     s, c = wp.tid()
     acc = float(0.0)
-    for k in range(c, H.shape[1], stride):
+    for k in range(c, H.shape[1], partial.shape[1]):
         acc += H[s, k]
-    wp.atomic_add(mean, s, acc * inv_count)
+    partial[s, c] = acc * inv_count
+
+
+@wp.kernel(enable_backward=False)
+def row_sums(partial: wp.array2d(dtype=float), mean: wp.array(dtype=float)):
+    """``mean[s] = sum_c partial[s, c]``, added in index order: unlike an atomic float sum (whose order follows
+    thread timing on CUDA) the mean curve, and with it Eqs. (4) and (6), repeats bit for bit."""
+    s = wp.tid()
+    acc = float(0.0)
+    for c in range(partial.shape[1]):
+        acc += partial[s, c]
+    mean[s] = acc
 
 
 @wp.kernel(enable_backward=False)
@@ -65,18 +76,3 @@ def adaptive_scale(
             found = 1
         acc += inc
     out[k] = result
-
-
-@wp.kernel(enable_backward=False)
-def auc_total(
-    H: wp.array2d(dtype=float),
-    mean: wp.array(dtype=float),
-    taus: wp.array(dtype=float),
-    total: wp.array(dtype=wp.float64),
-):
-    """``total += sum_k s(v_k)``: Eq. (4) at ``tau_max`` summed over the vertices (``total`` zeroed first), in float64."""
-    k = wp.tid()
-    acc = float(0.0)
-    for s in range(1, taus.shape[0]):
-        acc += auc_step(H[s - 1, k], H[s, k], mean[s - 1], mean[s], taus[s - 1], taus[s])
-    wp.atomic_add(total, 0, wp.float64(acc))

@@ -40,6 +40,7 @@ from vnc_warp.kernels.vnc_terms import edge_geometry
 from . import _plan
 from ._checks import check_kappa, host_array, host_scalar, per_point, radius_stats
 from ._device import get_device
+from ._reduce import ordered_sum
 from ._replay import Replay, replayed_kinds
 from .mesh import Mesh, MeshError
 from .tuning import DEFAULT, Tuning
@@ -111,6 +112,7 @@ class _Moving:
         self.x = wp.empty(V, dtype=wp.vec3, device=device)
         self.tau = wp.empty(V, dtype=wp.float32, device=device) if tau_array else None
         self.stats = wp.empty(_plan.STATS_SIZE, dtype=wp.float32, device=device)
+        self.partial = _plan.stats_partial(device)
         self.preset = _plan.stats_init(device)
         self.host = wp.empty(_plan.STATS_SIZE, dtype=wp.float32, device="cpu", pinned=device.is_cuda)
         self.view = self.host.numpy()  # a view of the host memory the bounds are copied into
@@ -133,7 +135,7 @@ class _Moving:
         """Enqueue the bounds of the loaded positions (and scales) into :attr:`stats` (part of the call's graph)."""
         wp.copy(self.stats, self.preset)
         empty = self.stats[:0]
-        _plan.launch_stats(self.x, radius if radius is not None else empty, empty, self.stats)
+        _plan.launch_stats(self.x, radius if radius is not None else empty, empty, self.stats, self.partial)
 
     def fetch(self) -> None:
         """Start copying the measured bounds to the host; :meth:`poll` reads them once they are there."""
@@ -912,10 +914,10 @@ class Engine:
         ``positions`` (default: the own vertices); one read from the device."""
         taus = np.asarray(taus, dtype=np.float64)
         H, mean = self.scale_curve(taus, "soft", kappa=kappa, positions=positions)
-        total = wp.zeros(1, dtype=wp.float64, device=self.device)
-        wp.launch(_ks.auc_total, dim=self.num_vertices, inputs=[H, mean, self._taus(taus)], outputs=[total],
+        auc = wp.empty(self.num_vertices, dtype=wp.float32, device=self.device)
+        wp.launch(_ks.scale_auc, dim=self.num_vertices, inputs=[H, mean, self._taus(taus)], outputs=[auc],
                   device=self.device)
-        return float(total.numpy()[0])
+        return ordered_sum(auc)
 
     def _curve(self, x, taus, taus_wp, variant, kappa, strategy, pool, fresh, bounds=None) -> list:
         """The launches of one scale curve: ``[H, mean]`` (new arrays when ``fresh``, else from ``pool``)."""
@@ -928,9 +930,10 @@ class Engine:
             self._curve_bvh(x, f, taus_wp, variant, kappa, H)
         else:
             self._curve_cells(x, f, taus, taus_wp, variant, kappa, strategy, H, pool, bounds)
-        mean = _plan.zeros(None if fresh else pool, device, S, wp.float32)
-        stride = min(V, 256)
-        wp.launch(_ks.column_mean, dim=(S, stride), inputs=[H, stride, 1.0 / V], outputs=[mean], device=device)
+        mean = _plan.empty(None if fresh else pool, device, S, wp.float32)
+        partial = _plan.empty(None if fresh else pool, device, (S, min(V, 256)), wp.float32)
+        wp.launch(_ks.column_sums, dim=partial.shape, inputs=[H, 1.0 / V], outputs=[partial], device=device)
+        wp.launch(_ks.row_sums, dim=S, inputs=[partial], outputs=[mean], device=device)
         return [H, mean]
 
     def _curve_bvh(self, x, f, taus_wp, variant, kappa, H):

@@ -56,10 +56,10 @@ import numpy as np
 import warp as wp
 
 from vnc_warp.kernels import flow as _k
-from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _ks
 
 from ._device import get_device
+from ._reduce import face_measures, vertex_normals
 from ._engine import engine
 from .mesh import Mesh, MeshError, framed_mesh, load_mesh
 from .operators import vnc_soft
@@ -231,20 +231,11 @@ class _Surface:
 
     def measures(self) -> tuple[float, float]:
         """Area and enclosed volume (float64 sums on the device)."""
-        sums = wp.zeros(2, dtype=wp.float64, device=self.x.device)
-        centroid = wp.zeros(1, dtype=wp.vec3d, device=self.x.device)
-        bad = wp.zeros(2, dtype=wp.int32, device=self.x.device)
-        wp.launch(_kr.face_measures, dim=self.tri.shape[0] // 3, inputs=[self.x, self.tri, 0.0, 0.0],
-                  outputs=[sums, centroid, bad], device=self.x.device)
-        s = sums.numpy()
-        return float(s[0]), float(s[1])
+        area, volume, _, _ = face_measures(self.x, self.tri)
+        return area, volume
 
     def vertex_normals(self) -> wp.array:
-        normals = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=self.x.device)
-        wp.launch(_kr.vertex_normals, dim=self.tri.shape[0] // 3, inputs=[self.x, self.tri], outputs=[normals],
-                  device=self.x.device)
-        wp.launch(_kr.normalize_vectors, dim=normals.shape[0], inputs=[normals], device=self.x.device)
-        return normals
+        return vertex_normals(self.x, self.tri)
 
     def span(self) -> float:
         from .remesh import _device_bounds

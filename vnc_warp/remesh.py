@@ -54,6 +54,7 @@ import numpy as np
 import warp as wp
 
 from vnc_warp._device import get_device
+from vnc_warp._reduce import face_measures, ordered_sum, vertex_normals
 from vnc_warp.kernels import remesh as _kr
 from vnc_warp.kernels import sdf as _k
 from vnc_warp.mesh import EdgeTopology, Mesh, MeshError, framed_mesh, load_mesh
@@ -688,10 +689,7 @@ class _Target:
     def __init__(self, mesh: wp.Mesh):
         self.mesh = mesh
         dev = mesh.points.device
-        self.normals = wp.zeros(mesh.points.shape[0], dtype=wp.vec3, device=dev)
-        wp.launch(_kr.vertex_normals, dim=mesh.indices.shape[0] // 3, inputs=[mesh.points, mesh.indices],
-                  outputs=[self.normals], device=dev)
-        wp.launch(_kr.normalize_vectors, dim=self.normals.shape[0], inputs=[self.normals], device=dev)
+        self.normals = vertex_normals(mesh.points, mesh.indices)
 
     @property
     def args(self) -> list:
@@ -744,7 +742,7 @@ class _HalfEdgeSurface:
         self.offsets = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
         self.lists = [wp.empty(self.num_he, dtype=wp.int32, device=device) for _ in range(2)]
         self.counts = [wp.zeros(1, dtype=wp.int32, device=device) for _ in range(2)]
-        self.moved = wp.zeros(1, dtype=wp.float64, device=device)
+        self.moved = wp.zeros(nv, dtype=wp.float64, device=device)
         self.length = 0.0
 
     @property
@@ -787,13 +785,8 @@ class _HalfEdgeSurface:
     def measures(self, tiny: float = 0.0) -> tuple[float, float, np.ndarray, int, int]:
         """Area, enclosed volume, area centroid (3,), faces with non-finite corners, and slivers (below
         ``_SLIVER``, or twice the area below ``tiny``)."""
-        sums = wp.zeros(2, dtype=wp.float64, device=self.device)
-        centroid = wp.zeros(1, dtype=wp.vec3d, device=self.device)
-        bad = wp.zeros(2, dtype=wp.int32, device=self.device)
-        wp.launch(_kr.face_measures, dim=self.num_faces, inputs=[self.x, self.tri, _SLIVER, float(tiny)],
-                  outputs=[sums, centroid, bad], device=self.device)
-        s, c, b = sums.numpy(), centroid.numpy()[0], bad.numpy()
-        return float(s[0]), float(s[1]), np.asarray(c) / max(float(s[0]), 1e-300), int(b[0]), int(b[1])
+        area, volume, centroid, bad = face_measures(self.x, self.tri, _SLIVER, tiny)
+        return area, volume, centroid / max(area, 1e-300), int(bad[0]), int(bad[1])
 
     def problems(self, tiny: float) -> list[str]:
         """Every reason the surface is not a valid VNC-Flow state (as :func:`surface_problems` names
@@ -823,10 +816,7 @@ class _HalfEdgeSurface:
     def buried(self, wm: wp.Mesh, offset: float, use_winding: int) -> int:
         """Vertices whose point ``offset`` out along their normal is inside ``wm`` (this surface, with winding
         numbers): see ``count_buried``."""
-        normals = wp.zeros(self.num_vertices, dtype=wp.vec3, device=self.device)
-        wp.launch(_kr.vertex_normals, dim=self.num_faces, inputs=[self.x, self.tri], outputs=[normals],
-                  device=self.device)
-        wp.launch(_kr.normalize_vectors, dim=self.num_vertices, inputs=[normals], device=self.device)
+        normals = vertex_normals(self.x, self.tri)
         count = wp.zeros(1, dtype=wp.int32, device=self.device)
         wp.launch(_k.count_buried, dim=self.num_vertices, inputs=[wm.id, self.x, normals, float(offset),
                                                                      use_winding], outputs=[count], device=self.device)
@@ -888,7 +878,7 @@ class _HalfEdgeSurface:
                 done += 1
             if not settle or done >= _MAX_SETTLE:
                 break
-            moved = float(self.moved.numpy()[0]) / (self.length * self.num_vertices)
+            moved = ordered_sum(self.moved) / (self.length * self.num_vertices)
             if moved < _SETTLED or moved > _SETTLE_RATE * before:
                 break
             before = moved
@@ -938,7 +928,6 @@ class _HalfEdgeSurface:
         """One sweep of tangential relaxation and projection onto ``surface``; moves that fold or crease
         an edge are undone."""
         dev = self.device
-        self.moved.zero_()
         wp.launch(_kr.tangential_relax, dim=self.x.shape[0],
                   inputs=[*surface.args, self.x, self.tri, self.twin, self.out_he, self.length, _MIN_COS_TURN,
                           _FEATURE_COS, _MAX_RING], outputs=[self.x_next, self.moved], device=dev)

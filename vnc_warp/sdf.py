@@ -268,8 +268,8 @@ def surface_samples(x: wp.array, tri: wp.array, count: int, *, seed: int = 0) ->
     num_faces = tri.shape[0] // 3
     area = wp.empty(num_faces, dtype=wp.float32, device=device)
     wp.launch(_k.face_areas, dim=num_faces, inputs=[x, tri], outputs=[area], device=device)
-    cdf = wp.empty_like(area)
-    wp.utils.array_scan(area, cdf, inclusive=True)
+    # a float scan on CUDA adds its blocks' totals in the order they finish; a host prefix sum adds in face order
+    cdf = wp.array(np.cumsum(area.numpy(), dtype=np.float32), dtype=wp.float32, device=device)
     u = np.random.default_rng(seed).random(count, dtype=np.float64).astype(np.float32)
     points = wp.empty(count, dtype=wp.vec3, device=device)
     normals = wp.empty(count, dtype=wp.vec3, device=device)
