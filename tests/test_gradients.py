@@ -336,3 +336,77 @@ def test_torch_gradient_with_the_cuda_launch_shape(op, per_vertex):
         ((H64 * wH).sum() + (n64 * wn).sum()).backward()
         g, g64 = v.grad.numpy(), v64.grad.numpy()
         assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+
+
+def test_torch_op_outputs_survive_later_replayed_calls(device):
+    """The torch op's forward and backward replay graphs that write into the same device arrays on every call; the
+    tensors it returned (H, n and the gradient) must be copies of their own. Five replayed calls at different
+    positions: each gives its own positions' float64 dense reference values and gradient, and after all of them the
+    tensors of the first call still hold the first call's values (a cache that served the graph's arrays, or stale
+    positions, fails here)."""
+    mesh = _mesh(2)
+    V = mesh.num_vertices
+    wH, wn = _objective_weights(V, 3)
+    replay = Tuning(replay=("cpu", "cuda"))
+    kept = []
+    for k in range(6):
+        v = torch.tensor(mesh.vertices * (1.0 + 0.05 * k), dtype=torch.float32, device=device, requires_grad=True)
+        H, n = vnc_soft(v, mesh, 0.6, tuning=replay)
+        ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
+        kept.append((H.detach(), n.detach(), v.grad, H.detach().clone(), n.detach().clone(), v.grad.clone()))
+        v64 = torch.tensor(v.detach().cpu().numpy().astype(np.float64), requires_grad=True)
+        H64, n64 = dense_soft(v64, mesh.faces, 0.6)
+        ((H64 * wH).sum() + (n64 * wn).sum()).backward()
+        np.testing.assert_allclose(H.detach().cpu().numpy(), H64.detach().numpy(),
+                                   atol=1e-5 * np.abs(H64.detach().numpy()).max())
+        g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
+        assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+    assert len(vw.engine(mesh, device, tuning=replay).graphs()) == 2  # the later calls were replayed
+    for H, n, g, H0, n0, g0 in kept:
+        assert torch.equal(H, H0) and torch.equal(n, n0) and torch.equal(g, g0)
+    assert not torch.equal(kept[-1][0], kept[-2][0])  # different positions gave different curvature
+
+
+def test_torch_op_float64_input_replayed_matches_dense(device):
+    """A float64 input goes through the replayed path (centred in float64, written into the plan's float32 positions
+    by one torch op, the gradient cast back): values and gradient equal the float64 dense reference's to 1e-5 of
+    their largest entry on the third and later calls, for a mesh moved 1e4 units from the origin."""
+    mesh = _mesh(5)
+    V = mesh.num_vertices
+    wH, wn = _objective_weights(V, 6)
+    replay = Tuning(replay=("cpu", "cuda"))
+    for k in range(4):
+        x0 = mesh.vertices.astype(np.float64) * (1.0 + 0.03 * k) + 1e4
+        v = torch.tensor(x0, dtype=torch.float64, device=device, requires_grad=True)
+        H, n = vnc_soft(v, mesh, 0.6, tuning=replay)
+        ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
+        assert v.grad.dtype == torch.float64
+        v64 = torch.tensor(x0 - 1e4, requires_grad=True)
+        H64, n64 = dense_soft(v64, mesh.faces, 0.6)
+        ((H64 * wH).sum() + (n64 * wn).sum()).backward()
+        np.testing.assert_allclose(H.detach().cpu().numpy(), H64.detach().numpy(),
+                                   atol=1e-5 * np.abs(H64.detach().numpy()).max())
+        g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
+        assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+
+
+def test_torch_op_refuses_positions_changed_before_backward():
+    """The backward pass reads the positions of its forward call: changing the input in place between the two is
+    refused by autograd (a backward over other positions would be silently wrong), and a NaN in the input is refused
+    on the CPU at the call, on the replayed path too."""
+    mesh = _mesh(2)
+    replay = Tuning(replay=("cpu", "cuda"))
+    v = torch.tensor(mesh.vertices, dtype=torch.float32, requires_grad=True)
+    for _ in range(3):
+        vnc_soft(v, mesh, 0.6, tuning=replay)
+    leaf = v.detach().clone().requires_grad_(True)
+    w = leaf * 1.0
+    H, n = vnc_soft(w, mesh, 0.6, tuning=replay)
+    with torch.no_grad():
+        w.mul_(1.1)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        H.sum().backward()
+    bad = v.detach().clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        vnc_soft(bad, mesh, 0.6, tuning=replay)

@@ -134,13 +134,13 @@ def degenerate_reason(mesh: Mesh, tau, kappa: float | None, *, soft: bool) -> tu
     return None
 
 
-def warn_if_degenerate(op: str, src: MeshInput, tau, kappa: float | None, n: wp.array, *, soft: bool = True) -> None:
+def warn_if_degenerate(op: str, src: MeshInput, tau, kappa: float | None, n, *, soft: bool = True) -> None:
     """Warn once per operator and reason when no vertex had anything in reach (``n = 0`` everywhere: on a flat
-    mesh ``n`` is not zero, so only the reach is tested). Checked where reading ``n`` costs nothing: on the CPU,
-    or when the results go to the host anyway."""
-    if n.device.is_cuda and src.kind == "warp":
+    mesh ``n`` is not zero, so only the reach is tested). Checked where reading ``n`` (a ``wp.array`` or a torch
+    tensor) costs nothing: on the CPU, or when the results go to the host anyway."""
+    if src.kind == "warp" and n.device.is_cuda:
         return
-    if np.any(n.numpy()):
+    if np.any(host_values(n)):
         return
     reason = degenerate_reason(src.mesh, tau, kappa, soft=soft)
     if reason is not None:

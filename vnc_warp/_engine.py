@@ -114,34 +114,43 @@ class _Moving:
         self.stats = wp.empty(_plan.STATS_SIZE, dtype=wp.float32, device=device)
         self.partial = _plan.stats_partial(device)
         self.preset = _plan.stats_init(device)
-        self.host = wp.empty(_plan.STATS_SIZE, dtype=wp.float32, device="cpu", pinned=device.is_cuda)
-        self.view = self.host.numpy()  # a view of the host memory the bounds are copied into
+        if device.is_cuda:
+            self.host = wp.empty(_plan.STATS_SIZE, dtype=wp.float32, device="cpu", pinned=True)
+            self.view = self.host.numpy()  # a view of the host memory the bounds are copied into
+        else:  # the CPU device has run each launch when it returns: the bounds are read where they are measured
+            self.host, self.view = None, self.stats.numpy()
         self.event = wp.Event(device) if device.is_cuda else None
         self.pending = False
-        self.saved: dict = {}  # the torch op's inputs of a backward pass, as the graph reads them
         self.prep = None  # what the last forward call prepared (fields, traversal, records, sums) ...
         self.token = None  # ... and the engine's token of that call
 
-    def load(self, x: wp.array, tau) -> None:
-        """Copy the call's positions (and array of scales) into the arrays the plan's launches read."""
-        wp.copy(self.x, x)
+    def load(self, x: wp.array | None, tau) -> None:
+        """Copy the call's positions (None: the caller wrote them into :attr:`x`) and array of scales into the
+        arrays the plan's launches read."""
+        if x is not None:
+            wp.copy(self.x, x)
         if self.tau is not None:
             if isinstance(tau, wp.array):
                 wp.copy(self.tau, per_point(tau, self.tau.shape[0], self.tau.device, "tau"))
             else:
                 self.tau.assign(host_array(tau, self.tau.shape[0], "tau"))
 
-    def measure(self, radius: wp.array | None) -> None:
-        """Enqueue the bounds of the loaded positions (and scales) into :attr:`stats` (part of the call's graph)."""
+    def measure(self, radius: wp.array | None, *, copy_out: bool = False) -> None:
+        """Enqueue the bounds of the loaded positions (and scales) into :attr:`stats` (part of the call's graph);
+        ``copy_out``: and their copy to the host (a graph's, so that a replay needs no copy of its own)."""
         wp.copy(self.stats, self.preset)
         empty = self.stats[:0]
         _plan.launch_stats(self.x, radius if radius is not None else empty, empty, self.stats, self.partial)
+        if copy_out and self.host is not None:
+            wp.copy(self.host, self.stats)
 
-    def fetch(self) -> None:
-        """Start copying the measured bounds to the host; :meth:`poll` reads them once they are there."""
+    def fetch(self, copied: bool = False) -> None:
+        """Start copying the measured bounds to the host (``copied``: the call's launches did), :meth:`poll` reads
+        them once they are there."""
         if self.x.device.is_capturing:
             return
-        wp.copy(self.host, self.stats)
+        if self.host is not None and not copied:
+            wp.copy(self.host, self.stats)
         if self.event is not None:
             wp.record_event(self.event)
         self.pending = True
@@ -206,6 +215,8 @@ class Engine:
         self._replays: dict = {}
         self._plans: OrderedDict = OrderedDict()
         self._unused = None
+        self._grads = None
+        self._state = None
         # a new token for every VNC-soft call: a backward pass may reuse what its forward call prepared while the
         # engine's token is still that call's (no other call has written the scratch since)
         self._soft_token = None
@@ -255,12 +266,17 @@ class Engine:
         table = self._replays.get(stream)
         return [] if table is None else table.graphs()
 
-    def _call(self, key: tuple, kind: str, run) -> list:
-        """``run(pool, fresh)``'s outputs, replayed when possible, as arrays of the caller's own."""
+    def _call(self, key: tuple, kind: str, run, *, copy: bool = True) -> list | tuple[list, bool]:
+        """``run(pool, fresh)``'s outputs, replayed when possible, as arrays of the caller's own; with ``copy=False``
+        ``(outputs, owned)`` instead, where outputs that are not ``owned`` belong to a graph: the caller copies them
+        out (in its own way) before the next call on the engine's stream."""
         table = self._replay()
         if table is None:
-            return run(self.pool(kind), True)
-        outs, fresh = table.call(key, kind, run, self.pool(kind))
+            outs, fresh = run(self.pool(kind), True), True
+        else:
+            outs, fresh = table.call(key, kind, run, self.pool(kind))
+        if not copy:
+            return outs, fresh
         return outs if fresh else [wp.clone(o) for o in outs]
 
     def _unused2d(self) -> wp.array:
@@ -347,12 +363,7 @@ class Engine:
         bounds measured at its last call call for another; a new plan reads the bounds ``bounds_of(x, radius)``
         (``radius``: the scales on the device) now."""
         t = self.tuning
-        plan = self._plans.get(key)
-        if plan is not None:
-            s = plan.poll()
-            if s is not None and plan.drifted(s, t):
-                self._forget(plan)
-                plan = None
+        plan = self._kept(key)
         if plan is None:
             radius = per_point(tau, self.num_vertices, self.device, "tau")
             bounds, strategy = bounds_of(x, radius)
@@ -362,6 +373,17 @@ class Engine:
                 self._forget(next(iter(self._plans.values())))
         self._plans.move_to_end(key)
         plan.load(x, tau)
+        return plan
+
+    def _kept(self, key: tuple) -> _Moving | None:
+        """The plan ``key`` if it exists and the bounds measured at its last call do not call for another."""
+        plan = self._plans.get(key)
+        if plan is not None:
+            s = plan.poll()
+            if s is not None and plan.drifted(s, self.tuning):
+                self._forget(plan)
+                return None
+            self._plans.move_to_end(key)
         return plan
 
     def _forget(self, plan: _Moving) -> None:
@@ -412,16 +434,22 @@ class Engine:
                                     self.tuning)
         return bounds_of
 
-    def _soft_moving(self, x: wp.array, tau, kappa: float, strategy: str, packed: bool = False) -> list:
+    def _soft_moving(self, x: wp.array | _Moving, tau, kappa: float, strategy: str, packed: bool = False, *,
+                     copy: bool = True) -> list | tuple[list, bool]:
         """VNC-soft at positions ``x`` on the device through a plan: ``[H, n]``, or (``packed``) one (V, 9) array of
-        ``(H, n, N, D, S)`` per vertex (the torch op's outputs and what its backward pass reads)."""
+        ``(H, n, N, D, S)`` per vertex (the torch op's outputs and what its backward pass reads). ``x`` may be the
+        plan itself (:meth:`soft_plan`), its positions written by the caller; ``copy``: as for :meth:`_call`."""
         t = host_scalar(tau, "tau")
-        plan = self._moving(("soft", strategy, kappa, "array" if t is None else t), x, tau, self._soft_bounds(strategy))
+        if isinstance(x, _Moving):
+            plan = x
+            plan.load(None, tau)
+        else:
+            plan = self._moving(self._soft_key(kappa, t, strategy), x, tau, self._soft_bounds(strategy))
 
         def run(pool, fresh):
             outputs, f, _, prep = self._soft(plan.x, plan.tau if t is None else t, kappa, plan.strategy, pool, fresh,
                                              bounds=plan.bounds)
-            plan.measure(plan.tau)
+            plan.measure(plan.tau, copy_out=not fresh)
             if not packed:
                 return outputs[3:]
             # only the torch op's (packed) calls leave what a backward pass reuses: a replayed call runs none of this,
@@ -433,10 +461,16 @@ class Engine:
             return [out]
 
         self._soft_token = None
-        outs = self._call(("soft-x", plan, packed), "soft", run)
-        plan.fetch()
+        outs, fresh = self._call(("soft-x", plan, packed), "soft", run, copy=False)
+        plan.fetch(copied=not fresh)
         self._soft_token = plan.token = object() if packed else None
-        return outs
+        if copy:
+            return outs if fresh else [wp.clone(o) for o in outs]
+        return outs, fresh
+
+    @staticmethod
+    def _soft_key(kappa: float, t: float | None, strategy: str = "auto") -> tuple:
+        return ("soft", strategy, kappa, "array" if t is None else t)
 
     def _soft(self, x: wp.array, tau, kappa: float, strategy: str, pool: _plan.Pool | None, fresh: bool, *,
               bounds: _plan.Bounds | None = None):
@@ -570,34 +604,55 @@ class Engine:
         wp.launch(_s.reduce_edge_grads, dim=E, inputs=[egroups.order, f.length, f.angle, f.normal, *eparts],
                   outputs=[angle_g, length_g, normal_g, mid_g], device=device, record_tape=False)
 
-    def soft_state(self, x: wp.array, tau, kappa: float) -> tuple[wp.array, object]:
-        """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 9) float32
-        array of the caller's own, ``(H, n, N, D, S)`` per vertex, for :meth:`soft_gradient` with ``token``."""
-        state = self._soft_moving(self.positions(x), tau, check_kappa(kappa, soft=True), "auto", packed=True)[0]
-        return state, self._soft_token
+    def soft_plan(self, tau, kappa: float) -> _Moving | None:
+        """The kept plan of :meth:`soft_state` calls with these scales (None: none yet, or the positions of its last
+        call drifted past it). A caller may write the next positions into its ``x`` ((V,) vec3, relative to the
+        centre) and pass the plan to :meth:`soft_state` in their place: a replayed call then copies nothing in."""
+        return self._kept(self._soft_key(kappa, host_scalar(tau, "tau")))
 
-    def soft_gradient(self, x: wp.array, tau, kappa: float, state: wp.array, grads: wp.array,
-                      token: object = None) -> wp.array:
-        """The gradient of VNC-soft with respect to the positions ``x`` of a :meth:`soft_state` call that gave
-        ``(state, token)``, for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``): (V,) vec3,
-        an array of the caller's own. Both adjoint passes and the edge fields' adjoint run over the plan of the
-        forward call, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still
-        ``token``), over the traversal that call prepared, else after preparing it again."""
+    @property
+    def soft_grads(self) -> wp.array:
+        """(V, 4) float32: where :meth:`soft_gradient` reads the upstream gradients ``(dL/dH, dL/dn)`` when it is given
+        none (the caller wrote them here; every backward graph of the engine reads this one array)."""
+        if self._grads is None:
+            self._grads = wp.empty((self.num_vertices, 4), dtype=wp.float32, device=self.device)
+        return self._grads
+
+    def soft_state(self, x: wp.array | _Moving, tau, kappa: float, *,
+                   copy: bool = True) -> tuple[wp.array, object] | tuple[wp.array, object, bool]:
+        """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 9) float32
+        array of the caller's own, ``(H, n, N, D, S)`` per vertex, for :meth:`soft_gradient` with ``token``. ``x``
+        may be a :meth:`soft_plan` holding the positions. ``copy=False``: ``(state, token, owned)``, where a state
+        that is not ``owned`` belongs to a graph (copy it out before the next call)."""
         kappa = check_kappa(kappa, soft=True)
-        x = self.positions(x)
+        if not isinstance(x, _Moving):
+            x = self.positions(x)
+        outs = self._soft_moving(x, tau, kappa, "auto", packed=True, copy=copy)
+        if copy:
+            return outs[0], self._soft_token
+        return outs[0][0], self._soft_token, outs[1]
+
+    def soft_gradient(self, x, tau, kappa: float, state, grads: wp.array | None, token: object = None, *,
+                      copy: bool = True) -> wp.array | tuple[wp.array, bool]:
+        """The gradient of VNC-soft with respect to the positions ``x`` of a :meth:`soft_state` call that gave
+        ``(state, token)``, for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``; None: the
+        caller wrote them into :attr:`soft_grads`): (V,) vec3, an array of the caller's own (``copy=False``:
+        ``(gx, owned)`` as for :meth:`soft_state`). Both adjoint passes and the edge fields' adjoint run over the plan
+        of the forward call, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still
+        ``token``), over the traversal that call prepared, else after preparing it again from ``x`` and ``state``
+        (either may be a function giving the array: it is called only then)."""
+        kappa = check_kappa(kappa, soft=True)
         t = host_scalar(tau, "tau")
-        key = ("soft", "auto", kappa, "array" if t is None else t)
+        key = self._soft_key(kappa, t)
         V = self.num_vertices
         plan = self._plans.get(key)
         reuse = (plan is not None and token is not None and plan.token is token and self._soft_token is token
                  and plan.prep is not None)
         if not reuse:
-            plan = self._moving(key, x, tau, self._soft_bounds("auto"))
-        saved = plan.saved
-        if not saved:
-            saved["state"] = wp.empty((V, 9), dtype=wp.float32, device=self.device)
-            saved["grads"] = wp.empty((V, 4), dtype=wp.float32, device=self.device)
-        wp.copy(saved["grads"], grads)
+            plan = self._moving(key, self.positions(x() if callable(x) else x), tau, self._soft_bounds("auto"))
+        grads_in = self.soft_grads
+        if grads is not None:
+            wp.copy(grads_in, grads)
 
         def adjoint(pool, fresh, f, prep, sums, H_grad, n_grad):
             device = self.device
@@ -614,26 +669,30 @@ class Engine:
             def run(pool, fresh):
                 H_grad = _plan.empty(pool, self.device, V, wp.float32)
                 n_grad = _plan.empty(pool, self.device, V, wp.vec3)
-                wp.launch(_s.unpack_grads, dim=V, inputs=[saved["grads"]], outputs=[H_grad, n_grad],
-                          device=self.device)
+                wp.launch(_s.unpack_grads, dim=V, inputs=[grads_in], outputs=[H_grad, n_grad], device=self.device)
                 f, prep, sums = plan.prep
                 return adjoint(pool, fresh, f, prep, sums, H_grad, n_grad)
 
-            return self._call(("soft-grad-reuse", plan), "soft-grad", run)[0]
-        wp.copy(saved["state"], state)
+            outs = self._call(("soft-grad-reuse", plan), "soft-grad", run, copy=copy)
+        else:
+            if self._state is None:
+                self._state = wp.empty((V, 9), dtype=wp.float32, device=self.device)
+            state_in = self._state
+            wp.copy(state_in, state() if callable(state) else state)
 
-        def run(pool, fresh):
-            device = self.device
-            tau_arr = per_point(plan.tau if t is None else t, V, device, "tau", pool)
-            f = self.fields(plan.x, pool=pool)
-            num, den, H_grad = (_plan.empty(pool, device, V, wp.float32) for _ in range(3))
-            nsum, n_grad = (_plan.empty(pool, device, V, wp.vec3) for _ in range(2))
-            wp.launch(_s.unpack_soft_state, dim=V, inputs=[saved["state"], saved["grads"]],
-                      outputs=[num, den, nsum, H_grad, n_grad], device=device)
-            prep = (tau_arr, *self._soft_prepare(plan.x, tau_arr, f, plan.bounds, plan.strategy, pool))
-            return adjoint(pool, fresh, f, prep, (num, den, nsum), H_grad, n_grad)
+            def run(pool, fresh):
+                device = self.device
+                tau_arr = per_point(plan.tau if t is None else t, V, device, "tau", pool)
+                f = self.fields(plan.x, pool=pool)
+                num, den, H_grad = (_plan.empty(pool, device, V, wp.float32) for _ in range(3))
+                nsum, n_grad = (_plan.empty(pool, device, V, wp.vec3) for _ in range(2))
+                wp.launch(_s.unpack_soft_state, dim=V, inputs=[state_in, grads_in],
+                          outputs=[num, den, nsum, H_grad, n_grad], device=device)
+                prep = (tau_arr, *self._soft_prepare(plan.x, tau_arr, f, plan.bounds, plan.strategy, pool))
+                return adjoint(pool, fresh, f, prep, (num, den, nsum), H_grad, n_grad)
 
-        return self._call(("soft-grad", plan), "soft-grad", run)[0]
+            outs = self._call(("soft-grad", plan), "soft-grad", run, copy=copy)
+        return outs[0] if copy else (outs[0][0], outs[1])
 
     # --- VNC-hard and the integrated measure, Eqs. (1)-(2) -------------------------------------------------------
 

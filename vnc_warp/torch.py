@@ -14,6 +14,9 @@ depend on the edge lengths) and differentiates every chord with respect to the b
 
 from __future__ import annotations
 
+import math
+import weakref
+
 import numpy as np
 import torch
 import warp as wp
@@ -27,23 +30,59 @@ from .tuning import Tuning
 __all__ = ["vnc_soft", "vnc_hard"]
 
 
+# torch views of Warp arrays the op reads or writes on every call (a plan's positions, the engine's upstream gradients,
+# a graph's outputs), made once per array: ``wp.to_torch`` costs more host time than a replayed call's graph
+_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _view(owner, name: str, arr: wp.array) -> torch.Tensor:
+    """The torch view of ``owner``'s Warp array ``arr`` (kept per owner and name while it is the same array)."""
+    views = _VIEWS.get(owner)
+    if views is None:
+        views = _VIEWS[owner] = {}
+    hit = views.get(name)
+    if hit is None or hit[0] is not arr:
+        hit = views[name] = (arr, wp.to_torch(arr, requires_grad=False))
+    return hit[1]
+
+
+def _owned(owner, name: str, arr: wp.array, owned: bool) -> torch.Tensor:
+    """``arr`` as a tensor of the caller's own: wrapped when it is the caller's already, else a copy of a graph's
+    output (a later replay of that graph writes into the array)."""
+    return wp.to_torch(arr, requires_grad=False) if owned else _view(owner, name, arr).clone()
+
+
+def _centred(x: torch.Tensor, centre: torch.Tensor) -> wp.array:
+    return wp.from_torch((x - centre).to(torch.float32).contiguous(), dtype=wp.vec3, requires_grad=False)
+
+
 class _VncSoft(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: torch.Tensor, eng: Engine, tau, kappa: float):
-        xw = wp.from_torch(x.detach(), dtype=wp.vec3)
-        state, token = eng.soft_state(xw, tau, kappa)
-        # the backward pass reads these Warp arrays (``x`` is the op's own float32 copy, never changed in place):
-        # converting the tensors again would cost more host time than its replayed graph on a small mesh
-        ctx.eng, ctx.tau, ctx.kappa, ctx.xw, ctx.state, ctx.token = eng, tau, kappa, xw, state, token
-        state = wp.to_torch(state)
-        # views of one (V, 9) array; the sums of its last columns are what the backward pass reads
+    def forward(ctx, x: torch.Tensor, centre: torch.Tensor, eng: Engine, tau, kappa: float):
+        # relative to the centre, in the input's precision, then float32: written straight into the positions the
+        # plan's graph reads when the plan exists (one torch op, no Warp array made), else into an array of our own
+        plan = eng.soft_plan(tau, kappa)
+        if plan is not None:
+            torch.sub(x, centre, out=_view(plan, "x", plan.x))
+            state, token, owned = eng.soft_state(plan, tau, kappa, copy=False)
+        else:
+            state, token, owned = eng.soft_state(_centred(x, centre), tau, kappa, copy=False)
+        state = _owned(eng, "state", state, owned)
+        ctx.save_for_backward(x, centre)
+        # ``state`` is the op's own tensor, which H and n view: a backward pass that must prepare again reads it
+        ctx.eng, ctx.tau, ctx.kappa, ctx.token, ctx.state = eng, tau, kappa, token, state
         return state[:, 0], state[:, 1:4]
 
     @staticmethod
     def backward(ctx, grad_H: torch.Tensor, grad_n: torch.Tensor):
-        grads = torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1).to(torch.float32).contiguous()
-        gx = ctx.eng.soft_gradient(ctx.xw, ctx.tau, ctx.kappa, ctx.state, wp.from_torch(grads), ctx.token)
-        return wp.to_torch(gx), None, None, None
+        eng = ctx.eng
+        x, centre = ctx.saved_tensors
+        torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1, out=_view(eng, "grads", eng.soft_grads))
+        gx, owned = eng.soft_gradient(lambda: _centred(x, centre), ctx.tau, ctx.kappa,
+                                      lambda: wp.from_torch(ctx.state, requires_grad=False), None, ctx.token,
+                                      copy=False)
+        gx = _owned(eng, "grad", gx, owned)
+        return gx.to(x.dtype), None, None, None, None
 
 
 class _VncHard(torch.autograd.Function):
@@ -83,7 +122,7 @@ def vnc_soft(verts: torch.Tensor, mesh, tau, *, kappa: float = 6.0,
         gradient of that vertex split equally among them; a row no face uses gets NaN.
     """
     _check_verts(verts)
-    return _apply(_VncSoft, verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=True)
+    return _apply(verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=True)
 
 
 def vnc_hard(verts: torch.Tensor, mesh, tau, *, kappa: float | None = 6.0,
@@ -104,7 +143,7 @@ def vnc_hard(verts: torch.Tensor, mesh, tau, *, kappa: float | None = 6.0,
         ``(H, n)`` as for :func:`vnc_soft`.
     """
     _check_verts(verts)
-    return _apply(_VncHard, verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=False)
+    return _apply(verts, _connectivity(verts, mesh), tau, kappa, tuning, soft=False)
 
 
 def _check_verts(verts) -> None:
@@ -114,9 +153,8 @@ def _check_verts(verts) -> None:
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}")
     if verts.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"verts must be float32 or float64 (Warp kernels run in float32), got {verts.dtype}")
-    # on CUDA this would wait for the device: the engine checks the positions there instead
-    if not verts.is_cuda and not torch.isfinite(verts).all():
-        raise ValueError("verts contain NaN or infinite values")
+    # NaN and infinite values are refused in _apply (on CUDA that would wait for the device: the engine checks the
+    # positions there instead)
 
 
 def _connectivity(verts: torch.Tensor, mesh) -> MeshInput:
@@ -148,7 +186,7 @@ def vnc_soft_input(verts: torch.Tensor, src: MeshInput, tau, *, kappa: float, de
     _check_verts(verts)
     if device is not None and get_device(device) != get_device(verts.device):
         raise ValueError(f"device={device} differs from the tensor's device {verts.device}; move the tensor")
-    return _apply(_VncSoft, verts, src, tau, kappa, tuning, soft=True)
+    return _apply(verts, src, tau, kappa, tuning, soft=True)
 
 
 def _mesh_tau(verts: torch.Tensor, src: MeshInput, tau):
@@ -174,12 +212,15 @@ def _mesh_tau(verts: torch.Tensor, src: MeshInput, tau):
     return src.to_mesh_vertices(tau, "tau")
 
 
-def _apply(op, verts: torch.Tensor, src: MeshInput, tau, kappa, tuning: Tuning | None, *, soft: bool):
-    """``op`` on the merged vertices of ``verts``, answered per row."""
+def _apply(verts: torch.Tensor, src: MeshInput, tau, kappa, tuning: Tuning | None, *, soft: bool):
+    """VNC-soft (``soft``) or VNC-hard on the merged vertices of ``verts``, answered per row."""
     if src.num_input_vertices != verts.shape[0]:
         raise ValueError(f"verts has {verts.shape[0]} rows, the mesh {src.num_input_vertices} vertices")
     x = verts
     idx = None
+    fast = soft and src.index is None  # checked finite below, from the box of the vertices
+    if not fast and not verts.is_cuda and not torch.isfinite(verts).all():
+        raise ValueError("verts contain NaN or infinite values")
     if src.index is not None:
         # one position per vertex of the surface: the mean of its rows (equal on a seam), so its gradient is
         # shared equally by them
@@ -188,16 +229,26 @@ def _apply(op, verts: torch.Tensor, src: MeshInput, tau, kappa, tuning: Tuning |
         V = src.mesh.num_vertices
         x = torch.zeros(V, 3, dtype=verts.dtype, device=verts.device).index_add(0, idx[used], verts[used])
         x = x / torch.bincount(idx[used], minlength=V).clamp(min=1).to(verts.dtype)[:, None]
-    # relative to the centre, in the input's precision, before float32: a mesh far from the origin keeps its digits
-    centre = 0.5 * (x.detach().amin(0) + x.detach().amax(0))
-    x = (x - centre).to(torch.float32).contiguous()
     mesh_tau = _mesh_tau(verts, src, tau)
     eng = engine(src.mesh, get_device(verts.device), tuning=tuning)
-    H, n = op.apply(x, eng, mesh_tau, None if kappa is None else float(kappa))
+    if soft:
+        # the centre of the box, in the input's precision: the op works relative to it, so that a mesh far from the
+        # origin keeps its digits in float32 (not differentiated: VNC does not depend on it)
+        xd = x.detach()
+        # one reduction on CUDA; torch's CPU aminmax along a dim takes milliseconds on a small tensor
+        lo, hi = torch.aminmax(xd, dim=0) if xd.is_cuda else (xd.amin(0), xd.amax(0))
+        centre = torch.lerp(lo, hi, 0.5)
+        # on the CPU reading 3 numbers is free; amin/amax propagate NaN and inf (on CUDA the engine checks instead)
+        if fast and not verts.is_cuda and not all(map(math.isfinite, centre.tolist())):
+            raise ValueError("verts contain NaN or infinite values")
+        H, n = _VncSoft.apply(x, centre, eng, mesh_tau, float(kappa))
+    else:
+        centre = 0.5 * (x.detach().amin(0) + x.detach().amax(0))
+        x = (x - centre).to(torch.float32).contiguous()
+        H, n = _VncHard.apply(x, eng, mesh_tau, None if kappa is None else float(kappa))
     if not verts.is_cuda:
         warn_if_degenerate("vnc_soft" if soft else "vnc_hard", src,
-                           mesh_tau.numpy() if isinstance(mesh_tau, wp.array) else mesh_tau, kappa,
-                           wp.from_torch(n.detach().contiguous(), dtype=wp.vec3), soft=soft)
+                           mesh_tau.numpy() if isinstance(mesh_tau, wp.array) else mesh_tau, kappa, n, soft=soft)
     if idx is None:
         return H, n
     pick = idx.clamp(min=0)
