@@ -122,3 +122,47 @@ def test_merging_keeps_vertex_order():
     f2 = f.copy()
     f2[f2 == 0] = len(v)
     np.testing.assert_array_equal(vw.from_arrays(dup, f2).vertices, v.astype(np.float32))
+
+
+def _row_unique_topology(faces):
+    """The edge topology as a row-wise ``np.unique`` over sorted vertex pairs gives it (the reference)."""
+    a = faces.reshape(-1)
+    b = np.roll(faces, -1, axis=1).reshape(-1)
+    c = np.roll(faces, -2, axis=1).reshape(-1)
+    uniq, inverse, counts = np.unique(np.sort(np.stack([a, b], 1), 1), axis=0, return_inverse=True,
+                                      return_counts=True)
+    order = np.argsort(inverse.reshape(-1), kind="stable")
+    starts = np.searchsorted(inverse.reshape(-1)[order], np.arange(uniq.shape[0]))
+    ids = np.nonzero(counts == 2)[0]
+    h0, h1 = order[starts[ids]], order[starts[ids] + 1]
+    return uniq, np.stack([a[h0], b[h0], c[h0], c[h1]], 1), uniq[counts == 1], int(np.count_nonzero(a[h0] == a[h1]))
+
+
+@pytest.mark.parametrize("case", ["closed", "open", "inconsistent"])
+def test_edge_topology_matches_row_unique(case):
+    """_build_topology's single 1-D sort gives the edges, interior layout, boundary and inconsistent count in the
+    same order as a row-wise unique (the order VNC-Flow's sums over edges and its resumed runs depend on)."""
+    from vnc_warp.mesh import _build_topology
+
+    f = np.asarray(trimesh.creation.icosphere(2).faces, np.int32)
+    if case == "open":
+        f = f[7:]
+    elif case == "inconsistent":
+        f = f.copy()
+        f[[3, 50, 200]] = f[[3, 50, 200], ::-1]
+    topo, inconsistent = _build_topology(f)
+    edges, interior, boundary, bad = _row_unique_topology(f)
+    np.testing.assert_array_equal(topo.edges, edges)
+    np.testing.assert_array_equal(topo.interior, interior)
+    np.testing.assert_array_equal(topo.boundary, boundary)
+    assert inconsistent == bad and (bad > 0) == (case == "inconsistent") and (boundary.size > 0) == (case == "open")
+
+
+@pytest.mark.parametrize("offset", [0, 2**22])
+def test_double_faces_dropped_at_any_index_range(offset):
+    """_drop_double_faces removes both faces of every vertex triple used twice (either winding) and keeps the
+    rest, with indices small enough for its one-key path and beyond it."""
+    from vnc_warp.remesh import _drop_double_faces
+
+    f = np.array([[0, 1, 2], [2, 1, 0], [1, 2, 3], [3, 4, 5], [4, 5, 3], [0, 4, 6]], np.int64) + offset
+    np.testing.assert_array_equal(_drop_double_faces(f), f[[2, 5]])

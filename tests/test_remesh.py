@@ -190,6 +190,25 @@ def _tetra():
     return v, f
 
 
+def test_pinched_vertex_count_matches_fan_labelling():
+    """The fan count surface_problems uses on closed surfaces (turning around each vertex by pointer doubling)
+    finds the same pinched vertices as the graph labelling of the corners: none on an icosphere, one on two
+    tetrahedra touching at a vertex, and both on a chain of three that touch at two vertices (one of three fans)."""
+    from vnc_warp.remesh import _nonmanifold_vertices, _pinched_vertices_closed
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    f = np.asarray(s.faces)
+    assert _pinched_vertices_closed(f, len(s.vertices)).size == 0 == _nonmanifold_vertices(f, len(s.vertices)).size
+    _, tf = _tetra()
+    # tetrahedra 0-3, 0-4-5-6 (sharing vertex 0) and 0-7-8-9 (sharing 0), and 9-10-11-12 (sharing 9)
+    chain = [tf, np.where(tf == 0, 0, tf + 3), np.where(tf == 0, 0, tf + 6), np.where(tf == 0, 9, tf + 9)]
+    f = np.vstack(chain)
+    pinched = _pinched_vertices_closed(f, 13)
+    np.testing.assert_array_equal(pinched, [0, 9])
+    np.testing.assert_array_equal(pinched, _nonmanifold_vertices(f, 13))
+    np.testing.assert_array_equal(_pinched_vertices_closed(f[:8], 7), [0])
+
+
 def test_validate_surface_accepts_valid():
     """A closed, outward icosphere and a tetrahedron pass (as a Mesh, a trimesh and a (v, f) pair)."""
     s = trimesh.creation.icosphere(subdivisions=2)

@@ -440,7 +440,13 @@ class _Stepper:
         p = self.p
         if p.ball_rho <= 0.0:
             return
-        surface = _Surface(self.x, self.surface.tri)
+        # the stepper's own surface, refitted at the current positions (a new wp.Mesh would rebuild its BVH at every
+        # evaluation); its points are one of the two step buffers, so copying into it when it is the other one's
+        # spare loses nothing: the next step overwrites the spare in full
+        surface = self.surface
+        if self.x.ptr != surface.x.ptr:
+            wp.copy(surface.x, self.x)
+        surface.mesh.refit()
         wp.launch(_k.thin_part_correction, dim=self.mesh.num_vertices,
                   inputs=[surface.vertex_thickness(), curve.H, curve.mean, curve.H.shape[0] - 1, float(self.edge),
                           float(p.tube_rho), float(p.ball_rho)],
@@ -618,8 +624,10 @@ def flow(
         traj = Trajectory([m0], np.array([1.0]), [rec], info)
         if out_dir is not None:
             traj.save(out_dir)
-    # one frame for the whole trajectory: stage 0's centre, taken from its float32 vertices as stored
-    origin = _as_saved(traj.meshes[0]).origin
+    # one frame for the whole trajectory: stage 0's centre, taken from its float32 vertices as stored (as
+    # _as_saved(stage 0).origin is, without building its edges)
+    v0 = np.ascontiguousarray(traj.meshes[0].vertices, dtype=np.float32)
+    origin = 0.5 * (v0.min(0).astype(np.float64) + v0.max(0).astype(np.float64))
     if remesher is not None:
         remesher.adopt(_as_saved(traj.meshes[-1], origin), traj.info["remesh_spacing"], name)
     taus = np.asarray(traj.info["taus"])

@@ -75,9 +75,21 @@ def _build_topology(faces: np.ndarray, vertices: np.ndarray | None = None) -> tu
     a = faces.reshape(-1)
     b = np.roll(faces, -1, axis=1).reshape(-1)
     c = np.roll(faces, -2, axis=1).reshape(-1)
-    key = np.sort(np.stack([a, b], axis=1), axis=1)
-    uniq, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    # one int64 key per undirected edge, min * V + max: it sorts as the (min, max) rows do, so the edges come out
+    # in the lexicographic order a row-wise unique gives, without its sort of structured rows (10x slower)
+    nv = int(faces.max()) + 1 if faces.size else 1
+    lo = np.minimum(a, b).astype(np.int64)
+    hi = np.maximum(a, b).astype(np.int64)
+    key = lo * nv + hi
+    # one stable sort serves both the unique edges and the half-edges of each edge, in face order
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    first = np.ones(key.size, dtype=bool)
+    first[1:] = sorted_key[1:] != sorted_key[:-1]
+    starts = np.nonzero(first)[0]
+    counts = np.diff(np.append(starts, key.size))
+    ukey = sorted_key[starts]
+    uniq = np.stack([ukey // nv, ukey % nv], axis=1)
     bad = np.nonzero(counts > 2)[0]
     if bad.size:
         def where(u):
@@ -90,9 +102,6 @@ def _build_topology(faces: np.ndarray, vertices: np.ndarray | None = None) -> tu
             f"(max {int(counts.max())}), e.g. between vertices {pairs}"
             + ("; ..." if bad.size > 5 else "")
         )
-    order = np.argsort(inverse, kind="stable")
-    sorted_edge = inverse[order]
-    starts = np.searchsorted(sorted_edge, np.arange(uniq.shape[0]))
     interior_ids = np.nonzero(counts == 2)[0]
     h0 = order[starts[interior_ids]]
     h1 = order[starts[interior_ids] + 1]

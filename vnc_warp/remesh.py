@@ -279,6 +279,30 @@ def _nonmanifold_vertices(f: np.ndarray, num_vertices: int) -> np.ndarray:
     return np.nonzero(np.bincount(fans // f.size, minlength=num_vertices) > 1)[0]
 
 
+def _pinched_vertices_closed(f: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Vertices whose faces form more than one fan, for a closed surface whose every edge has two faces wound
+    opposite ways (as :func:`_nonmanifold_vertices`, without its graph labelling).
+
+    There, turning around a vertex (corner ``c`` to the twin of the half-edge that ends at ``c``) is a
+    permutation of the corners whose cycles are the fans. Each corner takes the smallest corner index of its
+    cycle by pointer doubling (``log2`` of the largest valence rounds of two gathers); a vertex has as many fans
+    as corners that are their own cycle's smallest.
+    """
+    a = f.reshape(-1).astype(np.int64)
+    b = np.roll(f, -1, axis=1).reshape(-1).astype(np.int64)
+    key = a * num_vertices + b
+    order = np.argsort(key)
+    twin = order[np.searchsorted(key[order], b * num_vertices + a)]
+    corner = np.arange(a.size)
+    turn = twin[3 * (corner // 3) + (corner + 2) % 3]
+    label = corner.copy()
+    for _ in range(int(np.ceil(np.log2(max(int(np.bincount(a).max()), 2))))):
+        label = np.minimum(label, label[turn])
+        turn = turn[turn]
+    fans = np.bincount(a[label == corner], minlength=num_vertices)
+    return np.nonzero(fans > 1)[0]
+
+
 def _split_fans(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cut non-manifold edges and vertices: one vertex copy per fan.
 
@@ -359,7 +383,7 @@ def surface_problems(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
                         f"both their faces, e.g. {_pairs(np.stack([same // nv, same % nv], 1))}")
         edge_problem = True
     if not edge_problem and not rep.size:
-        pinched = _nonmanifold_vertices(f, nv)
+        pinched = _pinched_vertices_closed(f, nv)
         if pinched.size:
             problems.append(f"non-manifold: {pinched.size} vertex(es) join separate fans of faces, "
                             f"e.g. vertices {_first(pinched)}")
@@ -449,20 +473,28 @@ def _face_components(f: np.ndarray, num_vertices: int) -> np.ndarray:
     return label[f[:, 0]]
 
 
-def _topology_counts(v: np.ndarray, f: np.ndarray) -> tuple[int | None, int, int, int, int]:
+def _topology_counts(v: np.ndarray, f: np.ndarray, topology: EdgeTopology | None = None
+                     ) -> tuple[int | None, int, int, int, int]:
     """Euler characteristic (None unless edge-manifold), boundary loops, non-manifold edges, inconsistently
-    wound edges and components of a triangle soup."""
+    wound edges and components of a triangle soup (of a loaded mesh, given its ``topology``: no edge pass)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     nv = v.shape[0]
-    a = f.reshape(-1)
-    b = np.roll(f, -1, axis=1).reshape(-1)
-    undirected, counts = np.unique(np.minimum(a, b) * nv + np.maximum(a, b), return_counts=True)
-    many = int(np.count_nonzero(counts > 2))
-    _, dcounts = np.unique(a * nv + b, return_counts=True)
-    inconsistent = int(np.count_nonzero(dcounts > 1))
-    boundary = undirected[counts == 1]
+    if topology is not None:
+        # a loaded Mesh: load_mesh refused non-manifold edges and inconsistent winding, and its edges are counted
+        many = inconsistent = 0
+        boundary = topology.boundary[:, 0].astype(np.int64) * nv + topology.boundary[:, 1]
+        num_edges = topology.edges.shape[0]
+    else:
+        a = f.reshape(-1)
+        b = np.roll(f, -1, axis=1).reshape(-1)
+        undirected, counts = np.unique(np.minimum(a, b) * nv + np.maximum(a, b), return_counts=True)
+        many = int(np.count_nonzero(counts > 2))
+        _, dcounts = np.unique(a * nv + b, return_counts=True)
+        inconsistent = int(np.count_nonzero(dcounts > 1))
+        boundary = undirected[counts == 1]
+        num_edges = undirected.size
     loops = 0
     if boundary.size:
         ends = np.stack([boundary // nv, boundary % nv])
@@ -470,7 +502,7 @@ def _topology_counts(v: np.ndarray, f: np.ndarray) -> tuple[int | None, int, int
         compact = compact.reshape(2, -1)
         graph = coo_matrix((np.ones(boundary.size, np.int8), (compact[0], compact[1])), shape=(used.size,) * 2)
         loops = int(connected_components(graph, directed=False)[0])
-    euler = None if many else int(np.unique(f).size - undirected.size + f.shape[0])
+    euler = None if many else int(np.unique(f).size - num_edges + f.shape[0])
     components = int(np.unique(_face_components(f, nv)).size)
     return euler, loops, many, inconsistent, components
 
@@ -494,7 +526,7 @@ def _read_source(source: Any) -> _Source:
             raise
         mesh = None
     if mesh is not None:
-        euler, loops, _, _, components = _topology_counts(mesh.vertices, mesh.faces)
+        euler, loops, _, _, components = _topology_counts(mesh.vertices, mesh.faces, mesh.topology)
         valid = mesh.is_watertight and not surface_problems(mesh.vertices, mesh.faces)
         return _Source(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64), mesh.name,
                        mesh if valid else None, {"components": components} if components > 1 else {},
@@ -563,10 +595,14 @@ def auto_spacing(area: float, side: float, target: int, wm: wp.Mesh, x: wp.array
 
 @dataclass
 class _LevelSet:
-    """A marching-cubes surface on the device: (V,) vec3 ``points``, (3F,) int32 ``indices``."""
+    """A marching-cubes surface on the device: (V,) vec3 ``points``, (3F,) int32 ``indices``; its host copy and
+    component labels are made once, when first asked for (the agreement check and the level-set path both
+    read them)."""
 
     points: wp.array
     indices: wp.array
+    _host: tuple | None = field(default=None, repr=False)
+    _labels: tuple | None = field(default=None, repr=False)
 
     @property
     def num_faces(self) -> int:
@@ -578,7 +614,16 @@ class _LevelSet:
         return self.points.shape[0] - self.num_faces // 2
 
     def host(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.points.numpy().astype(np.float64), self.indices.numpy().reshape(-1, 3).astype(np.int64)
+        """(V, 3) float64 positions and (F, 3) int64 triangles (shared: not to be modified)."""
+        if self._host is None:
+            self._host = (self.points.numpy().astype(np.float64), self.indices.numpy().reshape(-1, 3).astype(np.int64))
+        return self._host
+
+    def components(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per face its component label, and per component its area (:func:`_components`)."""
+        if self._labels is None:
+            self._labels = _components(*self.host())
+        return self._labels
 
     def mesh(self) -> wp.Mesh:
         return wp.Mesh(points=self.points, indices=self.indices)
@@ -672,8 +717,13 @@ def _drop_double_faces(f: np.ndarray) -> np.ndarray:
     double-sided triangle: two faces on the same three vertices, which make their edges four-faced.
     Without both, the part keeps a three-vertex waist and every edge has two faces again.
     """
-    key = np.sort(f, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    s = np.sort(f, axis=1).astype(np.int64)
+    n = int(f.max()) + 1 if f.size else 1
+    if n < 2**21:  # one int64 key per vertex triple: a 1-D unique, not a (slower) row-wise one
+        _, inverse, counts = np.unique((s[:, 0] * n + s[:, 1]) * n + s[:, 2], return_inverse=True,
+                                       return_counts=True)
+    else:
+        _, inverse, counts = np.unique(s, axis=0, return_inverse=True, return_counts=True)
     return f[counts[inverse.reshape(-1)] == 1]
 
 
@@ -1123,7 +1173,7 @@ class _Remesher:
         if ls.euler != st.euler:
             # specks that marching cubes samples off a tip thinner than the grid are no topology change
             v, f = ls.host()
-            label, area = _components(v, f)
+            label, area = ls.components()
             main = label == np.argmax(area)
             euler = np.unique(f[main]).size - int(main.sum()) // 2
             clock.lap("checks")
@@ -1145,6 +1195,7 @@ class _Remesher:
         import fast_simplification
 
         failures = []
+        tiny = 1e-12 * float(((hi - lo) ** 2).sum())
         for g, (shift, refine) in enumerate(_GRIDS):
             h = h0 * refine
             ls = first if g == 0 else None
@@ -1154,7 +1205,7 @@ class _Remesher:
                 v_mc, f_mc = ls.host()
                 kept = 0
                 if f_mc.shape[0]:
-                    label, comp_area = _components(v_mc, f_mc)
+                    label, comp_area = ls.components()
                     keep = label == np.argmax(comp_area)
                     kept = int(keep.sum())
                 clock.lap("components")
@@ -1193,12 +1244,12 @@ class _Remesher:
                 v, f = fast_simplification.simplify(v_k, f_k, target_count=target, agg=agg)
                 f = _drop_double_faces(f)
                 clock.lap("decimation")
-                done, problem = self._finish(v, f, surface, area, target, report, clock)
+                done, problem = self._finish(v, f, surface, area, target, tiny, report, clock)
                 if problem is None:
                     return done
                 # cut what the decimation pinched, drop parts it cut off, and check once more
                 v, f = _largest_component(*_split_fans(v, f))
-                done, after_cut = self._finish(v, f, surface, area, target, report, clock)
+                done, after_cut = self._finish(v, f, surface, area, target, tiny, report, clock)
                 if after_cut is None:
                     return done
                 failures.append(f"spacing {h:.4g}, agg {agg:g}: {problem} (after cutting pinched fans: {after_cut})")
@@ -1206,8 +1257,13 @@ class _Remesher:
         raise MeshError(f"sdf_remesh: {self.name}: no valid surface after {len(failures)} attempt(s)"
                         + (f" from an input with {what}" if what else "") + ": " + " | ".join(failures))
 
-    def _finish(self, v, f, surface, area, target, report, clock):
+    def _finish(self, v, f, surface, area, target, tiny, report, clock):
         """Orient outward, regularize, scale to ``area`` (if given) and check a decimated surface.
+
+        The result is checked on the device (:meth:`_HalfEdgeSurface.problems`, slivers below ``tiny`` twice the
+        area): :meth:`_HalfEdgeSurface.build` already refused a surface that is not a closed manifold, and the
+        regularization keeps that; what it can break (a fold, a sliver, the volume's sign) is counted by kernels,
+        with no host pass over the mesh.
 
         Returns:
             ``((state, mesh), None)`` when it is valid and within 2% of ``target`` faces, else
@@ -1231,13 +1287,11 @@ class _Remesher:
             now, _, centre, _, _ = st.measures()
             st.scale_about(centre, np.sqrt(area / now))
             report.area_scale = float(np.sqrt(area / now))
-        out = st.to_mesh(f"{self.name}:remeshed", self.origin)
-        # checked as stored (float32), so rounding cannot turn a valid face into a sliver afterwards
-        problems = surface_problems(out.vertices, out.faces)
+        problems = st.problems(tiny)
         clock.lap("checks")
         if problems:
-            return None, f"sdf_remesh: {out.name}: " + "; ".join(problems)
-        return (st, out), None
+            return None, f"sdf_remesh: {self.name}:remeshed: " + "; ".join(problems)
+        return (st, st.to_mesh(f"{self.name}:remeshed", self.origin)), None
 
     def _conclude(self, report: RemeshReport, expected: int | None, *, refuse: bool) -> RemeshReport:
         """Say what was repaired or changed; refuse (``refuse``: a new input, not a VNC-Flow state whose
