@@ -86,11 +86,23 @@ def main(argv=None) -> int:
         faces = args.faces
         if faces is None and args.max_faces:
             faces = min(load_mesh(path).num_faces, args.max_faces)
-        seconds, runs = [], []
+        seconds, runs, errors = [], [], []
         for _ in range(2):
             start = time.perf_counter()
-            runs.append(flow(path, stages=args.stages, faces=faces, device=args.device, progress=False))
+            try:
+                runs.append(flow(path, stages=args.stages, faces=faces, device=args.device, progress=False))
+            except Exception as exc:  # a failed flow is a result too: do both runs fail alike?
+                errors.append(f"{type(exc).__name__}: {exc}")
             seconds.append(time.perf_counter() - start)
+        if errors:
+            same = len(errors) == 2 and errors[0] == errors[1]
+            row = {"mesh": os.path.basename(path), "faces": faces or 0, "seconds": seconds, "stages": 0,
+                   "identical": same, "first_diff": None if same else 0, "max_dt": float("nan"),
+                   "max_dx": float("nan"), "errors": errors}
+            print(f"{row['mesh']}: {len(errors)} of 2 runs failed{' alike' if same else ''}: {errors[0][:300]}",
+                  flush=True)
+            rows.append(row)
+            continue
         row = {"mesh": os.path.basename(path), "faces": runs[0].meshes[0].num_faces, "seconds": seconds,
                **compare(*runs)}
         rows.append(row)

@@ -464,3 +464,37 @@ def test_a_torus_closes_its_hole_and_reaches_a_sphere():
         if "topology" not in (r["exception"] or ""):
             assert abs(r["t"] - (1.0 - r["index"] / 6)) <= 0.02, (r["index"], r["t"])
     assert recs[-1]["t"] < 0.3 and recs[-1]["sphericity"] > 0.95
+
+
+class _LineStepper:
+    """A stand-in for the flow's stepper: ``S`` is a given function of the first vertex's x coordinate."""
+
+    def __init__(self, S):
+        self.x = wp.zeros(4, dtype=wp.vec3, device="cpu")
+        self.S = S
+
+    def complexity(self):
+        return float(self.S(float(self.x.numpy()[0, 0])))
+
+
+@pytest.mark.parametrize("case", ["linear", "flat"])
+def test_chord_search_lands_or_bisects_a_flat_bracket(case):
+    """The stage controller's chord search (the step that lands S in its stage window): with S linear along the
+    chord its secant lands on the target at once (oracle: the analytic root x = 0.25); with S equal at both ends
+    (a step that moved S by nothing measurable; a 50k-face scorpion on the GPU hit it) it bisects instead of
+    dividing by zero, and, finding nothing closer to the target, leaves the step's own end state."""
+    from vnc_warp.flow import _search_chord
+
+    S = (lambda x: 2.0 - 4.0 * x) if case == "linear" else (lambda x: 0.5)
+    stepper = _LineStepper(S)
+    x_a = wp.zeros(4, dtype=wp.vec3, device="cpu")
+    stepper.x.assign(np.tile([1.0, 0.0, 0.0], (4, 1)).astype(np.float32))  # the state after the step: x = 1
+    S_a, S_b = S(0.0), S(1.0)
+    history = []
+    found_S, evaluations = _search_chord(stepper, x_a, S_a, S_b, target=1.0, tol=1e-3, history=history, it_a=0,
+                                         it_b=10)
+    x = float(stepper.x.numpy()[0, 0])
+    if case == "linear":
+        assert evaluations == 1 and found_S == pytest.approx(1.0, abs=1e-6) and x == pytest.approx(0.25, abs=1e-6)
+    else:
+        assert evaluations == 8 and found_S == 0.5 and x == 1.0 and len(history) == 8
