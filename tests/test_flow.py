@@ -471,10 +471,10 @@ class _LineStepper:
 
     def __init__(self, S):
         self.x = wp.zeros(4, dtype=wp.vec3, device="cpu")
-        self.S = S
+        self.curve = S
 
     def complexity(self):
-        return float(self.S(float(self.x.numpy()[0, 0])))
+        return float(self.curve(float(self.x.numpy()[0, 0])))
 
 
 @pytest.mark.parametrize("case", ["linear", "flat"])

@@ -825,7 +825,8 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
     best, best_S = 1.0, S_b
     for k in range(1, 9):
         gap = S_lo - S_hi
-        # A bracket whose ends have one S (a step that moved S by nothing measurable) has no secant: bisect it.
+        # A bracket whose ends have one S (a step that moved S by nothing measurable) or whose S rises along the
+        # chord has no secant root inside it: bisect it.
         theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 and math.isfinite(gap) else 0.5 * (lo + hi)
         theta = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
         wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(theta)], outputs=[stepper.x],
