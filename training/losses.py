@@ -219,4 +219,4 @@ def cvae_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], conf
     loss = (l_tsdf + beta * kl.mean() + config.eikonal_weight * l_eik + config.surface_weight * l_surf
             + config.normal_weight * l_normal)
     return {"loss": loss, "tsdf": l_tsdf, "kl": kl.mean(), "eik": l_eik, "surf": l_surf, "normal": l_normal,
-            "beta_kl": torch.tensor(beta, device=l_tsdf.device)}
+            "beta_kl": torch.full((), beta, device=l_tsdf.device)}

@@ -69,7 +69,7 @@ from .config import TrainConfig
 from .losses import cvae_loss, gradient_queries, kl_weight_at, tsdf_loss
 from .model import build_model
 
-__all__ = ["train", "open_dataset", "Stage0Input", "SuffixInput", "Symmetric", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
+__all__ = ["train", "train_step", "to_device", "open_dataset", "Stage0Input", "SuffixInput", "Symmetric", "lr_factor", "resolve_device", "REQUIRED_KEYS", "TrainingError",
            "TrainingInterrupted", "RUNTIME_KEYS", "SCHEDULE_KEYS"]
 
 REQUIRED_KEYS = ("surface", "queries", "tsdf", "near", "t")
@@ -659,19 +659,8 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                     if not checked:
                         _check_batch(batch)
                         checked = True
-                    b = {k: batch[k].to(ctx.device, non_blocking=True)
-                         for k in (*REQUIRED_KEYS, *OPTIONAL_KEYS) if k in batch}
-                    grad_q = gradient_queries(b, config.loss)
-                    with torch.autocast(device_type=ctx.device.type, dtype=torch.bfloat16, enabled=amp):
-                        out_ = model(b["surface"], b["queries"], b["t"],
-                                     eikonal_queries=None if grad_q is None else grad_q.points)
-                    terms = cvae_loss(out_, b, config.loss, step=step, gradient=grad_q)
-                    opt.zero_grad(set_to_none=True)
-                    terms["loss"].backward()
-                    grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
-                    lr = sched.get_last_lr()[0]
-                    opt.step()
-                    sched.step()
+                    b = to_device(batch, ctx.device)
+                    terms, grad_norm, lr = train_step(model, b, config, opt, sched, params, step=step, amp=amp)
                     step += 1
                     batch_in_epoch += 1
                     window.add(step, terms, grad_norm, batch)
@@ -714,6 +703,41 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device), "start_step": start_step,
             "step": step, "checkpoint": str(ckpt_path), "last": last,
             "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9)}
+
+
+def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    """The tensors of a collated batch that the step uses (:data:`REQUIRED_KEYS`, :data:`OPTIONAL_KEYS`), on
+    ``device`` (asynchronous copies from the loader's pinned memory)."""
+    return {k: batch[k].to(device, non_blocking=True) for k in (*REQUIRED_KEYS, *OPTIONAL_KEYS) if k in batch}
+
+
+def train_step(model: torch.nn.Module, b: dict[str, torch.Tensor], config: TrainConfig, opt: torch.optim.Optimizer,
+               sched: Any, params: list, *, step: int, amp: bool) -> tuple[dict[str, torch.Tensor], torch.Tensor, float]:
+    """One optimiser step on a batch already on the model's device (the loop of :func:`train`, and the benchmark's).
+
+    Args:
+        model: the model (or its DistributedDataParallel wrapper), in training mode.
+        b: the batch from :func:`to_device`.
+        config: the run configuration (loss weights, gradient clipping).
+        opt, sched, params: the optimiser, its learning-rate schedule and the trained parameters.
+        step: optimiser steps taken so far (the beta_kl curriculum).
+        amp: run the forward pass under bf16 autocast.
+
+    Returns:
+        ``(terms, grad_norm, lr)``: the loss terms of :func:`~vnc_warp.training.losses.cvae_loss`, the gradient
+        norm before clipping (() tensors on the device, not synchronised) and the learning rate of this step.
+    """
+    grad_q = gradient_queries(b, config.loss)
+    with torch.autocast(device_type=b["queries"].device.type, dtype=torch.bfloat16, enabled=amp):
+        out = model(b["surface"], b["queries"], b["t"], eikonal_queries=None if grad_q is None else grad_q.points)
+    terms = cvae_loss(out, b, config.loss, step=step, gradient=grad_q)
+    opt.zero_grad(set_to_none=True)
+    terms["loss"].backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip or float("inf"))
+    lr = sched.get_last_lr()[0]
+    opt.step()
+    sched.step()
+    return terms, grad_norm, lr
 
 
 @torch.no_grad()
