@@ -87,57 +87,16 @@ def farthest_point_sample(points: torch.Tensor, num_samples: int, *, start: torc
     elif start.shape != (b,):
         raise ValueError(f"farthest_point_sample: start must be ({b},), got {tuple(start.shape)}")
     pts = points.detach().float()
+    rows = torch.arange(b, device=points.device)
+    out = torch.empty(b, num_samples, dtype=torch.long, device=points.device)
+    dist = torch.full((b, n), float("inf"), device=points.device)
     cur = start.to(device=points.device, dtype=torch.long)
-    if pts.is_cuda and not torch.cuda.is_current_stream_capturing():
-        return _fps_replayed(pts, cur, num_samples)
-    return _fps_loop(pts, cur, num_samples)
-
-
-def _fps_loop(pts: torch.Tensor, start: torch.Tensor, num_samples: int) -> torch.Tensor:
-    """The farthest-point loop of :func:`farthest_point_sample`: (B, N, 3) float32, (B,) int64 -> (B, M) int64."""
-    b, n, _ = pts.shape
-    rows = torch.arange(b, device=pts.device)
-    out = torch.empty(b, num_samples, dtype=torch.long, device=pts.device)
-    dist = torch.full((b, n), float("inf"), device=pts.device)
-    cur = start
     for i in range(num_samples):
         out[:, i] = cur
         d = (pts - pts[rows, cur].unsqueeze(1)).square().sum(-1)
         dist = torch.minimum(dist, d)
         cur = dist.argmax(-1)
     return out
-
-
-# The loop launches ~7 tiny kernels per sample (3,500 for 512 latents), which on an H200 took 36 ms of a 114 ms
-# training step (bench/train_throughput.py, row h_fps); captured once per shape into a CUDA graph, a call is one
-# replay. Entries: (device index, B, N, M) -> (graph, points in, start in, indices out); the oldest goes first.
-_FPS_GRAPHS: dict[tuple, tuple] = {}
-_FPS_GRAPHS_MAX = 8
-
-
-def _fps_replayed(pts: torch.Tensor, start: torch.Tensor, num_samples: int) -> torch.Tensor:
-    """:func:`_fps_loop` on CUDA through a captured graph: the same kernels on the same inputs, so the same indices."""
-    key = (pts.device.index, *pts.shape, num_samples)
-    entry = _FPS_GRAPHS.get(key)
-    if entry is None:
-        static_pts, static_start = pts.clone(), start.clone()
-        side = torch.cuda.Stream(device=pts.device)
-        side.wait_stream(torch.cuda.current_stream(pts.device))
-        with torch.cuda.stream(side):  # warm-up off the capture, as torch.cuda.graph asks
-            _fps_loop(static_pts, static_start, num_samples)
-        torch.cuda.current_stream(pts.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        # thread_local: DataLoader pin-memory threads may call CUDA while this thread captures
-        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            static_out = _fps_loop(static_pts, static_start, num_samples)
-        if len(_FPS_GRAPHS) >= _FPS_GRAPHS_MAX:
-            _FPS_GRAPHS.pop(next(iter(_FPS_GRAPHS)))
-        entry = _FPS_GRAPHS[key] = (graph, static_pts, static_start, static_out)
-    graph, static_pts, static_start, static_out = entry
-    static_pts.copy_(pts)
-    static_start.copy_(start)
-    graph.replay()
-    return static_out.clone()
 
 
 def _gather_tokens(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
