@@ -73,6 +73,8 @@ def _exception(rec: dict, n: int) -> str | None:
     """Which documented exception a stage record is, if any."""
     if rec["index"] == n:
         return "last stage"
+    if rec.get("status") == "held":
+        return "no descent"
     for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
         if rm and rm.get("euler") != rm.get("euler_in"):
             return "topology change"

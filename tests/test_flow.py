@@ -498,3 +498,19 @@ def test_chord_search_lands_or_bisects_a_flat_bracket(case):
         assert evaluations == 1 and found_S == pytest.approx(1.0, abs=1e-6) and x == pytest.approx(0.25, abs=1e-6)
     else:
         assert evaluations == 8 and found_S == 0.5 and x == 1.0 and len(history) == 8
+
+
+def test_an_oversized_step_is_backtracked_so_every_stage_descends():
+    """A step 8x the default (``step_fraction=2``) on a star-like shape is unstable: without backtracking the total
+    VNC-AUC rose to 4x ``S_init`` within stage 1 and every stage ended at t ~ 1 (issue 21: scorpion's t rose to
+    3.7 within a stage). With it, each run of steps that raises ``S`` is taken back at half the step, so every
+    recorded stage lies below the one before, and no stage ends above the state it started from."""
+    m = random_shape(3, bands=(6, 12), amplitude=0.4, subdivisions=4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        traj = flow(m, stages=3, faces=1500, device="cpu", progress=False, step_fraction=2.0, max_lambda=60.0,
+                    max_iters=60)
+    for prev, rec in zip(traj.records[:-1], traj.records[1:]):
+        assert rec["t"] < prev["t"] - 0.05, (rec["index"], rec["t"], prev["t"])
+        start = rec["history"][0][1]
+        assert rec["S"] <= start, (rec["index"], rec["S"], start)

@@ -10,7 +10,13 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
   stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
-  ``eta`` times the vertex's own mean incident edge length. The rule is unit-free.
+  ``eta`` times the vertex's own mean incident edge length. The rule is unit-free. **Descent**: a run of steps
+  that takes ``S`` more than ``_RISE`` (5 %) above its segment's start is not a descent step of Eq. (5): the
+  stage goes back to its best state and halves the step (``lambda`` and every move clamp), a backtracking line
+  search on ``S`` (within 5 % it goes on: a remeshed state is re-smoothed first, and ``S`` moves by a few
+  percent between nearby states). Without it, on scorpion at 3,000 faces (limbs 1-2 edges thick) ``S`` rose
+  from 1.0 to 3.7 ``S_init`` within stage 1 and the state no longer remeshed. (Adaptive scales only: the
+  fixed-scale ablations of Fig. 7 keep the plain step.)
 * **Spatial balance**, Eq. (6): per-vertex adaptive scales ``tau_k`` from the stage's VNC-Scale curves
   with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage. **Thin parts** (see
   :data:`THIN_PARTS`): where the part around a vertex is a tube (shape factor ``rho`` = thickness along the
@@ -34,7 +40,11 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   handle whose ``S`` never fell, from its current state instead: a handle narrowing raises ``S`` (on a torus
   the thin-part rule fattens the tube and closes the hole), and only a remesh where the flow went closes it.
   A stage whose remesh, between stages or within, changed the topology records it in ``exception``; its
-  ``t`` may lie above its window, even above 1 (a torus: 1.58 at the stage that closed its hole).
+  ``t`` may lie above its window, even above 1 (a torus: 1.58 at the stage that closed its hole). A stage
+  that cannot go on keeps its best state, also one from before a remesh within it; a stage whose best ``S``
+  is still above the previous stage's (a near-sphere whose remesh raised ``S`` by more than the last stage
+  can win back) keeps the previous state and ``t`` (status ``held``, the reason in ``exception``), except
+  on a shape with a handle (Euler characteristic below 2), whose ``S`` must rise until the hole closes.
 * **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages, one
   remesher for the whole trajectory, kept on the device; its report (path, Euler characteristic, components
   dropped, repairs, seconds per part) is the stage record's ``remesh``.
@@ -72,6 +82,8 @@ __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "refer
 
 # An evaluation makes progress when S falls by more than this share below the stage's best so far.
 _PROGRESS = 1.0e-3
+# A run of steps that takes S more than this share above its segment's start is not a descent: it is backtracked.
+_RISE = 0.05
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -417,8 +429,10 @@ class _Stepper:
         self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.lam = None
         self.S_start = None
+        self.move_scale = 1.0
         V = mesh.num_vertices
         local = _local_edge_length(mesh)
+        self.local = local
         self.edge = mesh.mean_edge_length
         if p.method == "vnc":
             curve = self.engine.curve(self.x)
@@ -501,6 +515,16 @@ class _Stepper:
         else:
             v = np.stack([self.solve(self.M @ v[:, d]) for d in range(3)], axis=1)
         self.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=self.device)
+
+    def backtrack(self, x: wp.array, part: wp.array) -> None:
+        """Go back to the state ``x`` (with its thin-part correction ``part``) and halve the step: ``lambda`` and
+        every vertex's move clamp, so that each move of Eq. (5) is half what it was."""
+        wp.copy(self.x, x)
+        wp.copy(self.part, part)
+        self.move_scale *= 0.5
+        self.lam *= 0.5
+        self.max_move = wp.array(np.float32(self.p.step_fraction * self.move_scale) * self.local, dtype=wp.float32,
+                                 device=self.device)
 
     def complexity(self) -> float:
         """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
@@ -653,9 +677,22 @@ def flow(
             else:
                 cur = prev
             state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
-            state = _as_saved(state, origin)
-            rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             last = traj.records[-1]
+            if p.method == "vnc" and p.scale_mode == "adaptive" and rec["S"] > last["S"] and _euler(prev) == 2:
+                # A stage that ends above the previous one's S did not descend: it keeps the previous state and t
+                # (a shape with a handle is the exception: its S rises while the hole narrows until a remesh
+                # closes it)
+                rec["exception"] = ((rec["exception"] + "; ") if rec.get("exception") else "") + (
+                    f"no descent: the best state reached t = {rec['t']:.4f}, above the previous stage's "
+                    f"{last['t']:.4f}; keeping the previous state")
+                rec.update(t=last["t"], S=last["S"], status="held", **_facts(prev, device))
+                state = prev
+            state = _as_saved(state, origin)
+            if remesher is not None and (rec.pop("kept", False) or rec["status"] == "held"):
+                # the remesher holds the last state it made; this stage recorded another: continue from it, as a
+                # resumed run does
+                remesher.adopt(state, traj.info["remesh_spacing"], name)
+            rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
             traj.meshes.append(state)
             traj.records.append(rec)
@@ -714,6 +751,13 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     it, it_a, evaluations, stale, status = 0, 0, 1, 0, None
     S_seg, step_scale = S_a, 1.0
     x_a = wp.clone(stepper.x)
+    # the fixed-scale ablations of Fig. 7 (c, d) keep the plain step: with backtracking the fixed small scale no
+    # longer stalls (t 0.31 -> 0.15 at stage 2 of tests/test_flow.py's shape), which is not the paper's ablation;
+    # and a shape with a handle must pass through a rise of S until a remesh closes the hole
+    descent = p.method == "vnc" and p.scale_mode == "adaptive" and _euler(mesh) == 2
+    part_a = wp.clone(stepper.part) if descent else None
+    # the stage's best state over its remeshes: (S, connectivity, positions)
+    kept = None
     last_valid = mesh
     rate = None
     since, within, ahead = 0, [], p.eval_every // 2
@@ -749,7 +793,15 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             stale = stale + 1 if S_b > S_a * (1.0 - _PROGRESS) else 0
             if S_b < S_a:
                 wp.copy(x_a, stepper.x)
+                if descent:
+                    wp.copy(part_a, stepper.part)
                 S_a, it_a = S_b, it
+            elif descent and S_b > S_seg * (1.0 + _RISE):
+                # not a descent: the run of steps since the best state raised S above the segment's start (beyond
+                # the re-smoothing of a remeshed state): go back to the best state and halve the step
+                stepper.backtrack(x_a, part_a)
+                ahead = p.eval_every // 2
+                history.append([it, S_a])
             if stale >= p.patience and it - since >= 4 * p.eval_max:
                 if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
                     status = "final" if final else "converged"
@@ -765,12 +817,16 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 through = stuck and _euler(mesh) < 2
                 if stuck and not through:
                     step_scale *= 0.5
+                if descent and (kept is None or S_a < kept[0]):
+                    kept = (S_a, mesh, wp.clone(x_a))
                 mesh, report = remesher(positions=stepper.x if through else x_a)
                 within.append(report.to_dict())
                 stepper = _Stepper(mesh, taus, p, device, step_scale=step_scale)
                 S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
                 S_seg = S_a
                 x_a = wp.clone(stepper.x)
+                part_a = wp.clone(stepper.part)
+                descent = p.scale_mode == "adaptive" and _euler(mesh) == 2
                 history.append([it, S_a])
                 clock.lap("remesh")
             continue
@@ -781,8 +837,11 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         status = "budget"
         S_a = S_b
     if status in ("max_iters", "converged", "final"):
-        # a stage that cannot go on keeps its best state
+        # a stage that cannot go on keeps its best state, also one from before a remesh within the stage
         wp.copy(stepper.x, x_a)
+        if kept is not None and kept[0] < S_a:
+            S_a, stepper.mesh, stepper.x = kept
+            rec["kept"] = True
     if status == "collapsed":
         state = last_valid
         S_a = total_complexity(state, taus, kappa=p.kappa, device=device)
