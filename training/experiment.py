@@ -821,9 +821,11 @@ def _fig9b(path: Path, shape: _Shape, folder: Path, kind: str, config: Experimen
     order = sorted(preds, reverse=True)
     traj = read_trajectory(shape.traj)
     role = "held-out" if shape.role == "holdout" else "distilled"
+    # one reference column per decoded t: the stage nearest in t, as the scores pair them, so columns align
+    near = [min(range(len(traj.stages)), key=lambda i: abs(traj.stages[i].t - t)) for t in order]
     decoded_trajectory([None if preds[t] is None else load_mesh(preds[t]) for t in order], order, path,
-                       reference=[traj.load_stage(i) for i in range(len(traj.stages))],
-                       reference_t=[s.t for s in traj.stages], frame_size=config.render_size,
+                       reference=[traj.load_stage(i) for i in near],
+                       reference_t=[traj.stages[i].t for i in near], frame_size=config.render_size,
                        title=f"Fig. 9b  {METHODS[kind]} on {role} {shape.name}", device=device)
     return str(path)
 
