@@ -501,6 +501,17 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             self._cache[i] = arrays
         return arrays
 
+    def surface(self, i: int) -> torch.Tensor:
+        """``self[i]["surface"]`` alone, equal to it bit for bit (the first draw of the item's generator), without
+        the queries and labels: what an encoder-input wrapper takes from another stage."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"TrajectoryDataset: index {i} out of range [0, {len(self)})")
+        a = self._arrays(i)
+        rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+        ns = a["surface"].shape[0]
+        return torch.from_numpy(np.ascontiguousarray(a["surface"][rng.choice(ns, self.num_surface,
+                                                                             replace=ns < self.num_surface)]))
+
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         if not 0 <= i < len(self):
             raise IndexError(f"TrajectoryDataset: index {i} out of range [0, {len(self)})")

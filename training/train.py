@@ -99,6 +99,12 @@ def _item_ids(base: Dataset) -> list[tuple[int, int]]:
     return [(int(it["shape_id"]), int(it["stage"])) for it in (base[i] for i in range(len(base)))]
 
 
+def _surface(base: Dataset, i: int) -> torch.Tensor:
+    """``base[i]["surface"]``, through ``base.surface(i)`` when the dataset can draw it alone (half a
+    :class:`TrajectoryDataset` item's cost: no queries, labels or fresh points)."""
+    return base.surface(i) if hasattr(base, "surface") else base[i]["surface"]
+
+
 class Stage0Input(Dataset):
     """The items of ``base`` with ``surface`` taken from the same shape's stage 0 (t = 1).
 
@@ -127,7 +133,7 @@ class Stage0Input(Dataset):
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         item = dict(self.base[i])
         if self.source[i] != i:
-            item["surface"] = self.base[self.source[i]]["surface"]
+            item["surface"] = _surface(self.base, self.source[i])
         return item
 
 
@@ -186,7 +192,7 @@ class SuffixInput(Stage0Input):
         if s == 0:
             return super().__getitem__(i)
         item = dict(self.base[i])
-        item["surface"] = self.base[self.first[(sid, s)]]["surface"]
+        item["surface"] = _surface(self.base, self.first[(sid, s)])
         t = min(1.0, self.time[(sid, st)] / self.time[(sid, s)])
         item["t"] = torch.tensor(t, dtype=torch.float32)
         return item

@@ -246,6 +246,30 @@ def test_dataset_items_splits_and_seeding(built):
         TrajectoryDataset(base / "data", split="test")
 
 
+def test_surface_alone_equals_the_items_surface(built):
+    """TrajectoryDataset.surface(i) is item i's encoder surface bit for bit (the first draw of the item's
+    generator), in every epoch and with repeats; Stage0Input and SuffixInput, which take it from another stage,
+    give what the whole item of that stage would give."""
+    from vnc_warp.training.train import Stage0Input, SuffixInput
+
+    base, _, _ = built
+    ds = TrajectoryDataset(base / "data", num_surface=128, num_queries=200, num_on_surface=50, repeats=2,
+                           split="all", seed=4)
+    for epoch in (0, 3):
+        ds.set_epoch(epoch)
+        for i in range(len(ds)):
+            assert torch.equal(ds.surface(i), ds[i]["surface"])
+    stage0, suffix = Stage0Input(ds), SuffixInput(ds, stage0_share=0.0, seed=1)
+    for i in range(len(ds)):
+        assert torch.equal(stage0[i]["surface"], ds[stage0.source[i]]["surface"])
+        sid, st = suffix.ids[i]
+        start = suffix.start(i)
+        source = suffix.source[i] if start == 0 else suffix.first[(sid, start)]
+        assert torch.equal(suffix[i]["surface"], ds[source]["surface"])
+    with pytest.raises(IndexError):
+        ds.surface(len(ds))
+
+
 def test_on_surface_points_are_the_items_own(built):
     """With num_on_surface, every item carries points and unit normals on its OWN stage's surface (the stage-1
     sphere of radius 0.8 r, normalized), also when Stage0Input gives the encoder stage 0's surface (radius r); the
