@@ -37,6 +37,29 @@ def _objective_weights(V, seed=1):
     return torch.randn(V, generator=g, dtype=torch.float64), torch.randn(V, 3, generator=g, dtype=torch.float64)
 
 
+def _assert_fd(f, x0: np.ndarray, grad: torch.Tensor, eps: float, rtol: float) -> None:
+    """Central finite differences of ``f`` at every 17th vertex of ``x0`` ((V, 3) float64) against ``grad``."""
+    for i in range(0, x0.shape[0], 17):
+        for d in range(3):
+            xp, xm = x0.copy(), x0.copy()
+            xp[i, d] += eps
+            xm[i, d] -= eps
+            fd = (f(xp) - f(xm)) / (2 * eps)
+            assert abs(grad[i, d].item() - fd) < rtol * max(1.0, abs(fd)), (i, d, grad[i, d].item(), fd)
+
+
+def _assert_soft_matches_dense(H, grad, x64: np.ndarray, faces, wH, wn, k: int) -> None:
+    """VNC-soft values and the gradient of the weighted objective equal the float64 dense reference's at ``x64``
+    to 1e-5 of their largest entry (``k`` names the call in the message)."""
+    v64 = torch.tensor(x64, requires_grad=True)
+    H64, n64 = dense_soft(v64, faces, 0.6)
+    ((H64 * wH).sum() + (n64 * wn).sum()).backward()
+    np.testing.assert_allclose(H.detach().cpu().numpy(), H64.detach().numpy(),
+                               atol=1e-5 * np.abs(H64.detach().numpy()).max())
+    g, g64 = grad.cpu().numpy(), v64.grad.numpy()
+    assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+
+
 @pytest.mark.parametrize("per_vertex", [False, True])
 def test_torch_gradient_matches_dense_float64(per_vertex, device):
     """d(sum wH H + sum wn . n)/dv from the Warp op equals autograd through the float64 dense reference to 1e-5 of
@@ -69,15 +92,7 @@ def test_torch_gradient_finite_differences():
         H64, n64 = dense_soft(torch.tensor(x), mesh.faces, 0.8)
         return float((H64 * wH).sum() + (n64 * wn).sum())
 
-    x0 = mesh.vertices.astype(np.float64)
-    eps = 1e-5
-    for i in range(0, mesh.num_vertices, 17):
-        for d in range(3):
-            xp, xm = x0.copy(), x0.copy()
-            xp[i, d] += eps
-            xm[i, d] -= eps
-            fd = (f(xp) - f(xm)) / (2 * eps)
-            assert abs(v.grad[i, d].item() - fd) < 2e-3 * max(1.0, abs(fd))
+    _assert_fd(f, mesh.vertices.astype(np.float64), v.grad, eps=1e-5, rtol=2e-3)
 
 
 def test_warp_tape_gradient_equals_torch_op(device):
@@ -183,15 +198,7 @@ def test_hard_torch_gradient_finite_differences(kappa):
         H64, n64 = dense_hard(torch.tensor(x), mesh.faces, 0.8, kappa)
         return float((H64 * wH).sum() + (n64 * wn).sum())
 
-    x0 = mesh.vertices.astype(np.float64)
-    eps = 1e-6
-    for i in range(0, mesh.num_vertices, 17):
-        for d in range(3):
-            xp, xm = x0.copy(), x0.copy()
-            xp[i, d] += eps
-            xm[i, d] -= eps
-            fd = (f(xp) - f(xm)) / (2 * eps)
-            assert abs(v.grad[i, d].item() - fd) < 1e-3 * max(1.0, abs(fd)), (i, d, v.grad[i, d].item(), fd)
+    _assert_fd(f, mesh.vertices.astype(np.float64), v.grad, eps=1e-6, rtol=1e-3)
 
 
 def test_hard_adjoint_grid_equals_bvh(device):
@@ -354,13 +361,7 @@ def test_torch_op_outputs_survive_later_replayed_calls(device):
         H, n = vnc_soft(v, mesh, 0.6, tuning=replay)
         ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
         kept.append((H.detach(), n.detach(), v.grad, H.detach().clone(), n.detach().clone(), v.grad.clone()))
-        v64 = torch.tensor(v.detach().cpu().numpy().astype(np.float64), requires_grad=True)
-        H64, n64 = dense_soft(v64, mesh.faces, 0.6)
-        ((H64 * wH).sum() + (n64 * wn).sum()).backward()
-        np.testing.assert_allclose(H.detach().cpu().numpy(), H64.detach().numpy(),
-                                   atol=1e-5 * np.abs(H64.detach().numpy()).max())
-        g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
-        assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+        _assert_soft_matches_dense(H, v.grad, v.detach().cpu().numpy().astype(np.float64), mesh.faces, wH, wn, k)
     assert len(vw.engine(mesh, device, tuning=replay).graphs()) == 2  # the later calls were replayed
     for H, n, g, H0, n0, g0 in kept:
         assert torch.equal(H, H0) and torch.equal(n, n0) and torch.equal(g, g0)
@@ -381,13 +382,7 @@ def test_torch_op_float64_input_replayed_matches_dense(device):
         H, n = vnc_soft(v, mesh, 0.6, tuning=replay)
         ((H.double().cpu() * wH).sum() + (n.double().cpu() * wn).sum()).backward()
         assert v.grad.dtype == torch.float64
-        v64 = torch.tensor(x0 - 1e4, requires_grad=True)
-        H64, n64 = dense_soft(v64, mesh.faces, 0.6)
-        ((H64 * wH).sum() + (n64 * wn).sum()).backward()
-        np.testing.assert_allclose(H.detach().cpu().numpy(), H64.detach().numpy(),
-                                   atol=1e-5 * np.abs(H64.detach().numpy()).max())
-        g, g64 = v.grad.cpu().numpy(), v64.grad.numpy()
-        assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), (k, np.abs(g - g64).max() / np.abs(g64).max())
+        _assert_soft_matches_dense(H, v.grad, x0 - 1e4, mesh.faces, wH, wn, k)
 
 
 def test_torch_op_refuses_positions_changed_before_backward():
