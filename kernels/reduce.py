@@ -29,6 +29,38 @@ def strided_sums_vec3d(values: wp.array(dtype=wp.vec3d), partial: wp.array(dtype
     partial[t] = acc
 
 
+# Threads of :func:`fold_stats` at most: the length of its shared tile, which must be known when it is compiled.
+FOLD = wp.constant(64)
+
+
+# A module of its own: its tile of one value per thread is as long as the block it is compiled for, so in a module
+# built for another block size (the other kernels here launch 256 threads a block) it would not fit its shared tile.
+@wp.kernel(enable_backward=False, module="unique")
+def fold_stats(partial: wp.array2d(dtype=float), parts: int, stats: wp.array(dtype=float)):
+    """Add the threads' sums of :func:`kernels.vnc_grid.point_stats` (``partial``, (threads, 2)) into ``stats[7]``
+    and ``stats[9]`` in a fixed order, in one block of ``parts <= FOLD`` threads (``launch_tiled``, ``dim=1``,
+    ``block_dim=parts``): thread ``t`` adds ``partial[t + j parts]`` in index order, then thread 0 adds the ``parts``
+    results in thread order. One launch: the block shares its results through shared memory rather than a second
+    pass."""
+    _block, t = wp.tid()
+    rsum = float(0.0)
+    lsum = float(0.0)
+    for k in range(t, partial.shape[0], parts):
+        rsum += partial[k, 0]
+        lsum += partial[k, 1]
+    folded = wp.tile_empty(shape=FOLD, dtype=wp.vec2, storage="shared")
+    wp.tile_assign(folded, wp.tile(wp.vec2(rsum, lsum), preserve_type=True))
+    if t == 0:
+        rsum = stats[7]
+        lsum = stats[9]
+        for k in range(parts):
+            s = wp.tile_extract(folded, k)
+            rsum += s[0]
+            lsum += s[1]
+        stats[7] = rsum
+        stats[9] = lsum
+
+
 @wp.kernel(enable_backward=False)
 def iota(out: wp.array(dtype=wp.int32)):
     """``out[i] = i``."""

@@ -206,8 +206,8 @@ def point_stats(
     ``[lo.xyz, hi.xyz, max radius, sum radius, max length, sum length, bad points, bad radii]``: the counts of
     points with a NaN or infinite coordinate and of radii that are not positive and finite (which would otherwise
     come out as silent zeros). The two sums are this thread's part in ``partial[i]`` ((stride, 2)), added by
-    :func:`fold_sums` and :func:`stats_sums` in a fixed order: an atomic float sum would add in the order the
-    threads finish, and the plans built on these means would part between two runs.
+    :func:`kernels.reduce.fold_stats` in a fixed order: an atomic float sum would add in the order the threads
+    finish, and the plans built on these means would part between two runs.
     """
     i = wp.tid()
     lo = wp.vec3(1.0e30)
@@ -242,28 +242,6 @@ def point_stats(
     partial[i, 1] = lsum
     wp.atomic_add(stats, 10, bad_x)
     wp.atomic_add(stats, 11, bad_r)
-
-
-@wp.kernel(enable_backward=False)
-def fold_sums(partial: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
-    """``out[t] = sum_j partial[t + j P]`` (``P = out.shape[0]``) per column, added in index order: a fixed-order
-    first pass over the threads' sums of :func:`point_stats`."""
-    t = wp.tid()
-    rsum = float(0.0)
-    lsum = float(0.0)
-    for k in range(t, partial.shape[0], out.shape[0]):
-        rsum += partial[k, 0]
-        lsum += partial[k, 1]
-    out[t, 0] = rsum
-    out[t, 1] = lsum
-
-
-@wp.kernel(enable_backward=False)
-def stats_sums(partial: wp.array2d(dtype=float), stats: wp.array(dtype=float)):
-    """Add the folded sums of :func:`fold_sums` into ``stats[7]`` and ``stats[9]`` in index order (``dim=1``)."""
-    for i in range(partial.shape[0]):
-        stats[7] = stats[7] + partial[i, 0]
-        stats[9] = stats[9] + partial[i, 1]
 
 
 @wp.func

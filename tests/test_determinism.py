@@ -166,3 +166,81 @@ def test_mean_scale_curve_matches_float64(device):
     curve = scale_curve(from_arrays(v, f), [0.5, 1.0, 2.0, 4.0], "soft", device=device)
     H = curve._H.numpy().astype(np.float64)
     np.testing.assert_allclose(curve._mean.numpy(), H.mean(axis=1), rtol=1e-5, atol=1e-7)
+
+
+def _two_pass_sum(values: np.ndarray, threads: int, parts: int) -> np.float32:
+    """Float32 oracle of the planner's fixed order: ``threads`` strided sums in index order, folded in ``parts``
+    strided sums in index order, added in order."""
+    per_thread = [np.float32(0.0)] * threads
+    for t in range(threads):
+        for k in range(t, values.shape[0], threads):
+            per_thread[t] = np.float32(per_thread[t] + values[k])
+    total = np.float32(0.0)
+    for p in range(parts):
+        part = np.float32(0.0)
+        for t in range(p, threads, parts):
+            part = np.float32(part + per_thread[t])
+        total = np.float32(total + part)
+    return total
+
+
+def _planner_sums(n: int, device, parts: int | None = None):
+    """``(stats[7], stats[9], radii, lengths)``: the radius and length sums of :func:`vnc_warp._plan.launch_stats`
+    over ``n`` random points, or with ``parts`` given, of its two kernels run with ``fold_stats`` in ``parts``
+    lanes."""
+    from vnc_warp import _plan
+    from vnc_warp.kernels import reduce as _r
+
+    rng = np.random.default_rng(n)
+    x = wp.array(rng.normal(size=(n, 3)) * 40.0 + 300.0, dtype=wp.vec3, device=device)
+    radii = (rng.random(n) * 10.0 ** rng.uniform(-3, 3, n)).astype(np.float32)
+    lengths = (rng.random(n // 2 + 1) * 7.0).astype(np.float32)
+    stats = _plan.stats_init(device)
+    r, ln = wp.array(radii, device=device), wp.array(lengths, device=device)
+    if parts is None:
+        _plan.launch_stats(x, r, ln, stats)
+    else:
+        partial = _plan.stats_partial(device)
+        threads = min(n, _plan.STATS_THREADS)
+        wp.launch(_plan._g.point_stats, dim=threads, inputs=[x, r, ln, threads], outputs=[stats, partial],
+                  device=device)
+        wp.launch_tiled(_r.fold_stats, dim=1, inputs=[partial[:threads], parts], outputs=[stats], block_dim=parts,
+                        device=device)
+    s = stats.numpy()
+    return s[7], s[9], radii, lengths
+
+
+@pytest.mark.parametrize("n", [7, 4096, 9001])
+def test_planner_sums_add_in_a_fixed_order(device, n):
+    """The sums of radii and edge lengths the planner's means come from (one launch to measure, one to fold) equal
+    the float32 two-pass order bit for bit (64 parts on CUDA, one on the CPU) and the float64 sums to 1e-5."""
+    from vnc_warp import _plan
+    from vnc_warp.kernels import reduce as _r
+
+    rsum, lsum, radii, lengths = _planner_sums(n, device)
+    parts = _r.FOLD if wp.get_device(device).is_cuda else 1
+    threads = min(n, _plan.STATS_THREADS)
+    assert rsum.tobytes() == _two_pass_sum(radii, threads, parts).tobytes()
+    assert lsum.tobytes() == _two_pass_sum(lengths, threads, parts).tobytes()
+    assert rsum == pytest.approx(radii.astype(np.float64).sum(), rel=1e-5)
+    assert lsum == pytest.approx(lengths.astype(np.float64).sum(), rel=1e-5)
+
+
+def test_planner_fold_in_one_block_of_lanes():
+    """The fold CUDA runs (one block of ``FOLD`` lanes sharing their sums through shared memory), run on CPU lanes
+    (Warp's ``enable_cpu_blocks``), adds in the two-pass order bit for bit; and the other sum kernels still build
+    for blocks of 256 lanes, as on CUDA (a tile of one value per lane sized to another block does not fit)."""
+    from vnc_warp import _plan
+    from vnc_warp.kernels import reduce as _r
+
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        rsum, lsum, radii, lengths = _planner_sums(9001, "cpu", parts=_r.FOLD)
+        index = wp.empty(300, dtype=wp.int32, device="cpu")
+        wp.launch(_r.iota, dim=300, outputs=[index], device="cpu", block_dim=256)
+    finally:
+        wp.config.enable_cpu_blocks = before
+    assert rsum.tobytes() == _two_pass_sum(radii, _plan.STATS_THREADS, _r.FOLD).tobytes()
+    assert lsum.tobytes() == _two_pass_sum(lengths, _plan.STATS_THREADS, _r.FOLD).tobytes()
+    assert np.array_equal(index.numpy(), np.arange(300))

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from vnc_warp.kernels import reduce as _r
 from vnc_warp.kernels import vnc_grid as _g
 
 from .tuning import Tuning
@@ -136,22 +137,23 @@ def stats_init(device) -> wp.array:
     return wp.array(np.array([np.inf] * 3 + [-np.inf] * 4 + [0.0] * 5, dtype=np.float32), device=device)
 
 
-# Threads of :func:`kernels.vnc_grid.point_stats` at most, and of the fixed-order fold of their sums on CUDA: two
-# short passes instead of one thread walking 4096 partial sums. On the CPU one pass adds them in thread order, the
-# order in which the single CPU thread's atomics added them before, so CPU results stay what they were.
+# Threads of :func:`kernels.vnc_grid.point_stats` at most; the fixed-order fold of their sums
+# (:func:`kernels.reduce.fold_stats`) runs in ``FOLD`` parts on CUDA: short strided sums in one block rather than one
+# thread walking 4096 partial sums. On the CPU it adds them in one part, in thread order, the order in which the
+# single CPU thread's atomics added them before, so CPU results stay what they were.
 STATS_THREADS = 4096
-STATS_FOLD = 64
 
 
 def stats_partial(device) -> wp.array:
-    """Scratch for :func:`launch_stats`: (STATS_THREADS + STATS_FOLD, 2) float32."""
-    return wp.empty((STATS_THREADS + STATS_FOLD, 2), dtype=wp.float32, device=device)
+    """Scratch for :func:`launch_stats`: (STATS_THREADS, 2) float32."""
+    return wp.empty((STATS_THREADS, 2), dtype=wp.float32, device=device)
 
 
 def launch_stats(x: wp.array, radius: wp.array, length: wp.array | None, stats: wp.array,
                  partial: wp.array | None = None) -> None:
     """Enqueue :func:`kernels.vnc_grid.point_stats` into ``stats`` (preset by the caller), its sums added in a fixed
-    order (``partial``: :func:`stats_partial`, new if None); reads nothing back."""
+    order (``partial``: :func:`stats_partial`, new if None): two launches, one when there is nothing to add (no
+    radii, no lengths: a call with one scale); reads nothing back."""
     device = x.device
     if length is None:
         length = wp.empty(0, dtype=wp.float32, device=device)
@@ -160,10 +162,11 @@ def launch_stats(x: wp.array, radius: wp.array, length: wp.array | None, stats: 
     stride = int(min(max(x.shape[0], radius.shape[0], length.shape[0]), STATS_THREADS))
     wp.launch(_g.point_stats, dim=stride, inputs=[x, radius, length, stride], outputs=[stats, partial],
               device=device, record_tape=False)
-    folded = partial[STATS_THREADS:STATS_THREADS + (STATS_FOLD if device.is_cuda else 1)]
-    wp.launch(_g.fold_sums, dim=folded.shape[0], inputs=[partial[:stride]], outputs=[folded], device=device,
-              record_tape=False)
-    wp.launch(_g.stats_sums, dim=1, inputs=[folded], outputs=[stats], device=device, record_tape=False)
+    if not radius.shape[0] and not length.shape[0]:
+        return
+    parts = _r.FOLD if device.is_cuda else 1
+    wp.launch_tiled(_r.fold_stats, dim=1, inputs=[partial[:stride], parts], outputs=[stats], block_dim=parts,
+                    device=device, record_tape=False)
 
 
 def stats_bounds(s: np.ndarray, points: int, radii: int, lengths: int) -> Bounds:
