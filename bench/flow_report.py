@@ -78,6 +78,8 @@ def _exception(rec: dict, n: int) -> str | None:
     for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
         if rm and rm.get("euler") != rm.get("euler_in"):
             return "topology change"
+    if "self-intersection" in (rec.get("exception") or ""):
+        return "self-intersection"
     return None
 
 

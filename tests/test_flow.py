@@ -128,6 +128,26 @@ def test_resume_after_interruption_gives_same_result(shape, trajectory, tmp_path
         np.testing.assert_array_equal(a.vertices, b.vertices)
 
 
+def test_a_long_stage_is_flowed_in_sub_stages_as_the_finer_flow(shape):
+    """With ``substage_budget = 1/4``, N = 2 flows each stage in two sub-stages (remeshed and given their adaptive
+    scales as stages are) and records the second: its states are the N = 4 flow's stages 2 and 4 bit for bit, its
+    records sum the sub-stages' iterations, and each lands within 0.02 of its own target (issue 21: at N = 8 on an
+    H200 a body's stages ran out of iterations 0.1-0.2 short of their targets, Spot's ears thinned to 0.06)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fine = flow(shape, stages=4, device="cpu", progress=False, substage_budget=0.25)
+        coarse = flow(shape, stages=2, device="cpu", progress=False, substage_budget=0.25)
+    assert all("substages" not in r for r in fine.records)
+    for i in (1, 2):
+        rec = coarse.records[i]
+        assert [s["target_t"] for s in rec["substages"]] == pytest.approx([1.0 - (2 * i - 1) / 4, 1.0 - i / 2])
+        assert rec["iterations"] == sum(s["iterations"] for s in rec["substages"]) == \
+            fine.records[2 * i - 1]["iterations"] + fine.records[2 * i]["iterations"]
+        np.testing.assert_array_equal(coarse.meshes[i].vertices, fine.meshes[2 * i].vertices)
+        assert coarse.t[i] == fine.t[2 * i]
+    assert abs(coarse.t[1] - 0.5) <= 0.02
+
+
 def test_resume_refuses_a_different_run(shape, trajectory):
     """An output folder holding a run with other parameters is refused, not overwritten."""
     _, out = trajectory
@@ -461,7 +481,9 @@ def test_a_torus_closes_its_hole_and_reaches_a_sphere():
               if rm and (rm["euler_in"], rm["euler"]) == (0, 2)]
     assert closed and "topology" in recs[closed[0]]["exception"], closed
     for r in recs[closed[0] + 1:-1]:
-        if "topology" not in (r["exception"] or ""):
+        # a stage whose remesh had to go through the level set (the closed hole's two dimples met: a
+        # self-intersection) lands where that remesh left t, as its record says
+        if "topology" not in (r["exception"] or "") and "self-intersection" not in (r["exception"] or ""):
             assert abs(r["t"] - (1.0 - r["index"] / 6)) <= 0.02, (r["index"], r["t"])
     assert recs[-1]["t"] < 0.3 and recs[-1]["sphericity"] > 0.95
 

@@ -16,7 +16,13 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   search on ``S`` (within 5 % it goes on: a remeshed state is re-smoothed first, and ``S`` moves by a few
   percent between nearby states). Without it, on scorpion at 3,000 faces (limbs 1-2 edges thick) ``S`` rose
   from 1.0 to 3.7 ``S_init`` within stage 1 and the state no longer remeshed. (Adaptive scales only: the
-  fixed-scale ablations of Fig. 7 keep the plain step.)
+  fixed-scale ablations of Fig. 7 keep the plain step.) The rise must also exceed 5 % of ``S_init``: near a
+  sphere ``S`` is a few percent of ``S_init`` and noise of 1 % of an edge length moves it by half of itself, so a
+  test against ``S`` alone halved the step of every late stage until it stalled.
+* **Sub-stages**: the flow spends at most ``substage_budget`` (1/32 of ``S_init``) between two remeshes; a
+  stage with a larger budget (N < 32) is flowed as that many sub-stages, each remeshed and given its adaptive
+  scales, and records the last (its record lists them in ``substages``), so a trajectory of N = 8 holds states of
+  the flow that N = 32 makes.
 * **Spatial balance**, Eq. (6): per-vertex adaptive scales ``tau_k`` from the stage's VNC-Scale curves
   with ``phi = phi_fraction * mean_k s(v_k)``; recomputed at the start of every stage. **Thin parts** (see
   :data:`THIN_PARTS`): where the part around a vertex is a tube (shape factor ``rho`` = thickness along the
@@ -84,6 +90,10 @@ __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "refer
 _PROGRESS = 1.0e-3
 # A run of steps that takes S more than this share above its segment's start is not a descent: it is backtracked.
 _RISE = 0.05
+# ... and more than this share of S_init: near a sphere S is a few percent of S_init and moves by tens of percent of
+# itself under noise of 1 % of an edge length (fandisk at 3,000 faces, t = 0.063: 0.063 -> 0.100), so a rise
+# measured against S alone halved the step of every late stage until it stalled (issue 21, H200 at c2eac1e)
+_RISE_INIT = 0.05
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -144,7 +154,13 @@ class FlowParams:
             is turned around in Eq. (5) (see :data:`THIN_PARTS`) ...
         ball_rho: ... fading out up to this ``rho``; ``tube_rho = ball_rho = 0`` is Eq. (5) as written.
         tolerance: a stage ends when its ``t`` is within this of its target ``1 - i/N``.
-        max_iters: iteration cap per stage.
+        max_iters: iteration cap per stage (per sub-stage, see ``substage_budget``).
+        substage_budget: the largest share of ``S_init`` the flow spends between two remeshes. A stage whose
+            budget ``1/N`` is larger (N < 32 by default) is flowed in ``ceil(substage_budget^-1 / N)`` equal
+            sub-stages, each remeshed and given new adaptive scales (Eq. 6) as a stage is, and only its last is
+            recorded (adaptive VNC-Flow; the Fig. 7 ablations and baselines keep one flow per stage): the flow between remeshes, and so the trajectory, is the same whatever N (before, at N = 8 a
+            body's stage ran out of iterations 0.1-0.2 short of its target and Spot's ears thinned to a 0.06
+            thickness ratio within one long stage; H200, c2eac1e).
         stall_remeshes: a stage that stalls short of its target (``patience`` evaluations without progress)
             is remeshed from its best state and goes on, at most this many times (the same topology
             regularization as between stages; never in the last stage, whose target is out of reach).
@@ -176,6 +192,7 @@ class FlowParams:
     ball_rho: float = 1.8
     tolerance: float = 0.005
     max_iters: int = 300
+    substage_budget: float = 1.0 / 32.0
     stall_remeshes: int = 4
     eval_every: int = 1
     eval_max: int = 16
@@ -190,6 +207,8 @@ class FlowParams:
     def __post_init__(self):
         if self.stages < 1:
             raise ValueError(f"stages must be >= 1, got {self.stages}")
+        if not 0.0 < self.substage_budget <= 1.0:
+            raise ValueError(f"substage_budget must be in (0, 1], got {self.substage_budget}")
         if self.scale_mode not in ("adaptive", "small", "large"):
             raise ValueError(f"scale_mode must be adaptive, small or large, got {self.scale_mode!r}")
         if self.method not in ("vnc", "mcf_explicit", "mcf_implicit"):
@@ -657,6 +676,9 @@ def flow(
         remesher.adopt(_as_saved(traj.meshes[-1], origin), traj.info["remesh_spacing"], name)
     taus = np.asarray(traj.info["taus"])
     S_init = traj.info["S_init"]
+    # sub-stages per stage (adaptive VNC-Flow only: the Fig. 7 ablations and baselines keep one flow per stage)
+    m = max(1, math.ceil(1.0 / (p.stages * p.substage_budget) - 1e-9)) if p.method == "vnc" and \
+        p.scale_mode == "adaptive" else 1
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -670,13 +692,24 @@ def flow(
             prev = traj.meshes[-1]
             if not np.array_equal(prev.origin, origin):  # read from disk: into the trajectory's frame
                 prev = _as_saved(prev, origin)
-            rec = {"index": i}
-            if remesher is not None and i > 1:
-                cur, report = remesher(positions=wp.array(prev.local_vertices, dtype=wp.vec3, device=device))
-                rec["remesh"] = report.to_dict()
-            else:
-                cur = prev
-            state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, rec, remesher)
+            subs, state = [], prev
+            for j in range(1, m + 1):
+                # sub-stage j of m (m = 1 unless a stage's budget exceeds substage_budget): remeshed, given its
+                # adaptive scales and flowed as a stage is, to 1 - ((i - 1) m + j) / (N m)
+                sub = {"index": i}
+                if remesher is not None and (i > 1 or j > 1):
+                    cur, report = remesher(positions=wp.array(state.local_vertices, dtype=wp.vec3, device=device))
+                    sub["remesh"] = report.to_dict()
+                else:
+                    cur = state
+                state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
+                                      goal=((i - 1) * m + j) / (p.stages * m))
+                subs.append(sub)
+                if j < m:
+                    state = _as_saved(state, origin)
+                    if remesher is not None and sub.pop("kept", False):
+                        remesher.adopt(state, traj.info["remesh_spacing"], name)
+            rec = _merge_substages(subs)
             last = traj.records[-1]
             if p.method == "vnc" and p.scale_mode == "adaptive" and rec["S"] > last["S"] and _euler(prev) == 2:
                 # A stage that ends above the previous one's S did not descend: it keeps the previous state and t
@@ -714,6 +747,35 @@ def flow(
     return traj
 
 
+def _merge_substages(subs: list[dict]) -> dict:
+    """One stage record from its sub-stages' (:class:`FlowParams` ``substage_budget``): the last one's state, ``t``
+    and status; iterations, evaluations and seconds summed; the first one's remesh as the stage's, the later ones'
+    with the remeshes within; the history on one iteration axis; the earlier sub-stages' exceptions kept."""
+    rec = dict(subs[-1])
+    if len(subs) == 1:
+        return rec
+    rec["remesh"] = subs[0].get("remesh")
+    within, history, parts, notes, offset = [], [], {}, [], 0
+    for j, sub in enumerate(subs):
+        if j > 0 and sub.get("remesh"):
+            within.append(sub["remesh"])
+            parts["remesh"] = parts.get("remesh", 0.0) + sum(sub["remesh"].get("seconds", {}).values())
+        within += sub.get("remeshes_within") or []
+        history += [[offset + it, S] for it, S in sub["history"]]
+        offset += sub["iterations"]
+        for k, v in (sub.get("parts") or {}).items():
+            parts[k] = parts.get(k, 0.0) + v
+        if j < len(subs) - 1 and sub.get("exception"):
+            notes.append(f"sub-stage {j + 1} of {len(subs)}: {sub['exception']}")
+    if rec.get("exception"):
+        notes.append(rec["exception"])
+    rec.update(iterations=offset, evaluations=sum(s["evaluations"] for s in subs), history=history,
+               remeshes_within=within, parts=parts, exception="; ".join(notes) or None,
+               substages=[{"t": s["t"], "target_t": s["target_t"], "iterations": s["iterations"], "status": s["status"]}
+                          for s in subs])
+    return rec
+
+
 def _digest_arrays(v: np.ndarray, f: np.ndarray) -> str:
     h = hashlib.sha256(np.ascontiguousarray(v, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(f, dtype=np.int32).tobytes())
@@ -733,16 +795,19 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
             "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
 
 
-def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None):
+def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None, *,
+               goal: float | None = None):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
-    ``1 - i/N`` (see the module docstring); fills ``rec`` and returns the state and its device positions. A stage
-    that stalls is remeshed on the way (``remesher``, if any; ``stall_remeshes``)."""
+    ``1 - goal`` (default ``goal = i/N``; a sub-stage's is a fraction in between; see the module docstring); fills
+    ``rec`` and returns the state and its device positions. A stage that stalls is remeshed on the way
+    (``remesher``, if any; ``stall_remeshes``)."""
     from .remesh import _Clock
 
     parts: dict = {}
     clock = _Clock(device, parts)
-    final = i == p.stages
-    target = S_init * (1.0 - i / p.stages)
+    goal = i / p.stages if goal is None else goal
+    final = goal >= 1.0
+    target = S_init * (1.0 - goal)
     tol = p.tolerance * S_init
     stepper = _Stepper(mesh, taus, p, device)
     S_a = stepper.S_start if stepper.S_start is not None else stepper.complexity()
@@ -796,7 +861,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 if descent:
                     wp.copy(part_a, stepper.part)
                 S_a, it_a = S_b, it
-            elif descent and S_b > S_seg * (1.0 + _RISE):
+            elif descent and S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init:
                 # not a descent: the run of steps since the best state raised S above the segment's start (beyond
                 # the re-smoothing of a remeshed state): go back to the best state and halve the step
                 stepper.backtrack(x_a, part_a)
@@ -858,6 +923,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             f"a remesh within the stage changed the topology (Euler characteristic {closed[0]['euler_in']} -> "
             f"{closed[-1]['euler']}: {closed[0]['why_level_set']})")
     if status == "remesh":
+        if exception is None and remesh and remesh["method"] == "level_set":
+            exception = f"the level-set remesh ({remesh['why_level_set']})"
         exception = (exception or "the remesh") + f" took t to {S_a / S_init:.4f}, into or below this stage's window"
     elif status == "final":
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
