@@ -337,7 +337,7 @@ def _gpu() -> ExperimentConfig:
         name="gpu", num_shapes=16, shape_seed=0, subdivisions=4, holdout_shapes=1, num_humanoids=36,
         holdout_humanoids=5, humanoid_voxel=0.01, train_meshes=_REAL_TRAIN, holdout_meshes=_BODIES,
         distill_mesh="human_man.obj", distill_stages=32,
-        real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=12, flow_budget_s=240.0,
+        real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=12, flow_budget_s=330.0,
         num_samples=(32768, 16384, 65536), num_reference=16384, grid_resolution=80, noise=(0.003, 0.01, 0.03),
         backbone=ModelConfig(width=384, heads=6, num_latents=512, latent_dim=32, encoder_depth=2, decoder_depth=6,
                              num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
