@@ -447,3 +447,20 @@ def _has_manifold() -> bool:
     except ImportError:
         return False
     return True
+
+
+def test_keep_faces_renumbers_as_unique_does():
+    """Keeping a subset of faces drops the vertices no kept face uses and renumbers the rest in their old order:
+    the same arrays as the np.unique renumbering (the oracle), on a soup with unused and repeated vertices."""
+    from vnc_warp.remesh import _keep_faces
+
+    rng = np.random.default_rng(3)
+    v = rng.random((500, 3))
+    f = rng.integers(0, 400, size=(900, 3))
+    keep = rng.random(900) < 0.4
+    used = np.unique(f[keep])
+    remap = np.full(v.shape[0], -1)
+    remap[used] = np.arange(used.size)
+    v_k, f_k = _keep_faces(v, f, keep)
+    np.testing.assert_array_equal(v_k, v[used])
+    np.testing.assert_array_equal(f_k, remap[f[keep]])
