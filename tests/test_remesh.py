@@ -12,7 +12,7 @@ import warp as wp
 from conftest import mesh_path, open_scan
 
 from vnc_warp.mesh import Mesh, MeshError, load_mesh
-from vnc_warp.remesh import sdf_remesh, validate_surface
+from vnc_warp.remesh import _Remesher, sdf_remesh, validate_surface
 
 
 def _check_remeshed(out: Mesh, src: Mesh, target: int, *, closeness: float = 0.15):
@@ -309,7 +309,6 @@ def test_one_remesh_keeps_vnc_complexity(device, shape):
     sphere +0.01 %, body +0.06 % (the marching-cubes remesher moved S by -1 to -11 % per remesh)."""
     from capsules import BODY, capsules
 
-    from vnc_warp.remesh import _Remesher
     from vnc_warp.scale import default_scales
     from vnc_warp.shapes import icosphere
 
@@ -328,16 +327,28 @@ def test_one_remesh_keeps_vnc_complexity(device, shape):
 
 
 def test_surface_path_builds_the_same_topology_as_the_host():
-    """The edge topology built on the device from half-edges (sdf_remesh's surface path) is the one
-    vnc_warp.mesh builds on the host with np.unique: same edges, same (a, b, c0, c1) rows up to order."""
-    from vnc_warp.mesh import from_arrays
+    """The edge topology built on the device from half-edges (sdf_remesh's surface and marching-cubes paths) holds
+    the edges and (a, b, c0, c1) rows vnc_warp.mesh builds on the host; VNC-Flow's saved state (flow._as_saved, which
+    sorts the device's edges instead of rebuilding them from the faces) has exactly the host's, in its order."""
+    from capsules import BODY, capsules
 
-    src = load_mesh(trimesh.creation.icosphere(3))
-    out = sdf_remesh(src, device="cpu")
-    host = from_arrays(out.vertices, out.faces, merge=False).topology
-    assert sorted(map(tuple, out.topology.edges)) == sorted(map(tuple, host.edges))
-    assert sorted(map(tuple, out.topology.interior)) == sorted(map(tuple, host.interior))
-    assert out.topology.boundary.shape == (0, 2)
+    from vnc_warp.flow import _as_saved
+    from vnc_warp.mesh import _build_topology
+
+    for source in (load_mesh(trimesh.creation.icosphere(3)), capsules(BODY, nodes=40)):
+        remesher = _Remesher(faces=1500, device="cpu", warn=False)
+        first, _ = remesher(source)
+        again, report = remesher(positions=wp.array(first.local_vertices, dtype=wp.vec3, device="cpu"))
+        assert report.method == "surface"
+        for out in (first, again):
+            host, _ = _build_topology(np.ascontiguousarray(out.faces, dtype=np.int32))
+            assert sorted(map(tuple, out.topology.edges)) == sorted(map(tuple, host.edges))
+            assert sorted(map(tuple, out.topology.interior)) == sorted(map(tuple, host.interior))
+            assert out.topology.boundary.shape == (0, 2)
+            saved = _as_saved(out, out.origin).topology
+            np.testing.assert_array_equal(saved.edges, host.edges)
+            np.testing.assert_array_equal(saved.interior, host.interior)
+            assert saved.boundary.shape == (0, 2)
 
 
 def test_device_check_names_what_surface_problems_names():
@@ -447,3 +458,20 @@ def _has_manifold() -> bool:
     except ImportError:
         return False
     return True
+
+
+def test_keep_faces_renumbers_as_unique_does():
+    """Keeping a subset of faces drops the vertices no kept face uses and renumbers the rest in their old order:
+    the same arrays as the np.unique renumbering (the oracle), on a soup with unused and repeated vertices."""
+    from vnc_warp.remesh import _keep_faces
+
+    rng = np.random.default_rng(3)
+    v = rng.random((500, 3))
+    f = rng.integers(0, 400, size=(900, 3))
+    keep = rng.random(900) < 0.4
+    used = np.unique(f[keep])
+    remap = np.full(v.shape[0], -1)
+    remap[used] = np.arange(used.size)
+    v_k, f_k = _keep_faces(v, f, keep)
+    np.testing.assert_array_equal(v_k, v[used])
+    np.testing.assert_array_equal(f_k, remap[f[keep]])

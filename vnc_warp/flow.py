@@ -565,12 +565,20 @@ def _as_saved(mesh: Mesh, origin: np.ndarray | None = None) -> Mesh:
     float32), so that a run resumed from its files continues bit-identically to one never interrupted. With
     ``origin``, in the trajectory's frame: its :attr:`~vnc_warp.mesh.Mesh.local_vertices`, what the stages compute
     on, are taken relative to ``origin`` (float64), the same for a state just made and one read from disk."""
-    from .mesh import _build_topology
+    from .mesh import EdgeTopology, _build_topology
 
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
     # the edges in the order load_mesh gives them (the remesher builds them on the device in another order, and
-    # the order of the sums over edges shows in the last bits)
-    topology, _ = _build_topology(faces)
+    # the order of the sums over edges shows in the last bits). Both take each interior edge's (a, b, c0, c1) from
+    # its half-edge first in face order, so a closed surface's edges only need sorting by their endpoints: one sort
+    # of E keys instead of _build_topology's pass over the faces (koala at 50k faces: 29 -> 2.4 ms per state)
+    topo = mesh.topology
+    if topo.boundary.shape[0] == 0 and topo.interior.shape[0] == topo.edges.shape[0] == 3 * faces.shape[0] // 2:
+        key = topo.edges[:, 0].astype(np.int64) * mesh.num_vertices + topo.edges[:, 1]
+        order = np.argsort(key)
+        topology = EdgeTopology(topo.edges[order], topo.interior[order], topo.boundary)
+    else:
+        topology, _ = _build_topology(faces)
     return Mesh(np.ascontiguousarray(mesh.vertices, dtype=np.float32), faces, topology, mesh.name,
                 origin=None if origin is None else np.asarray(origin, np.float64))
 
