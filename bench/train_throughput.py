@@ -7,7 +7,8 @@ the preset's ``SuffixInput``), or on a dataset folder with ``--data``. Each row 
 
 - ``a_train``: ``training.train.train`` as the experiment runs it (DataLoader with the preset's workers, logging
   and the eval-mode decode every ``log_every`` steps); items/s from its log rows after the first.
-- ``a0_loader``: the DataLoader alone (no model): what the workers deliver.
+- ``a0_loader``: the training loop's DataLoader alone (no model; persistent workers, pinned memory on CUDA): what
+  the workers deliver.
 - ``b_fixed_batch``: ``train_step`` on one batch already on the device (no loader, no logging).
 - ``c_no_eikonal``: (b) without L_eik (its 512 queries are not decoded; the surface terms stay).
 - ``d_no_surface``: (b) without L_surf and L_normal (L_eik stays).
@@ -16,7 +17,8 @@ the preset's ``SuffixInput``), or on a dataset folder with ``--data``. Each row 
 - ``f_compile``: (b) with every attention block compiled (``nn.Module.compile``) except the query decoder's
   cross-attention, whose double backward torch.compile does not support; warm-up includes the compilation.
 - ``g_batch64``: (b) with twice the batch.
-- ``h_fps``: the encoder's farthest-point sampling alone (512 of 4,096 points, a Python loop of small kernels).
+- ``h_fps``: the encoder's farthest-point sampling alone (512 of 4,096 points per item, one Warp kernel launch,
+  :mod:`vnc_warp.sampling`).
 
 Every timed row runs ``--warmup`` steps, then ``--steps`` steps between ``torch.cuda.synchronize()`` calls; peak
 memory is ``torch.cuda.max_memory_allocated`` of the row. Prints a table and writes ``OUT/train_throughput.json``.
@@ -40,14 +42,22 @@ from typing import Callable
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, default_collate
+from torch.utils.data import Dataset, DistributedSampler, default_collate
 
 from vnc_warp.training.config import TrainConfig
 from vnc_warp.training.experiment import preset, run_config
 from vnc_warp.training.losses import cvae_loss, gradient_queries
 from vnc_warp.training.model import AttentionBlock, build_model, farthest_point_sample
 from vnc_warp.training.synthetic import EllipsoidTrajectories
-from vnc_warp.training.train import _optimizer, open_dataset, to_device, train, train_step
+from vnc_warp.training.train import (
+    _data_loader,
+    _EpochSampler,
+    _optimizer,
+    open_dataset,
+    to_device,
+    train,
+    train_step,
+)
 
 ROWS = ("a_train", "a0_loader", "b_fixed_batch", "c_no_eikonal", "d_no_surface", "cd_no_grad_terms", "e_forward",
         "f_compile", "g_batch64", "h_fps")
@@ -162,10 +172,12 @@ def _train_row(config: TrainConfig, dataset: Dataset, device: torch.device, *, s
 
 
 def _loader_row(config: TrainConfig, dataset: Dataset, device: torch.device, *, warmup: int, steps: int) -> dict:
-    """What the DataLoader alone delivers, with the run's workers and pinned memory; first-batch latency apart."""
+    """What the training loop's DataLoader alone delivers (its workers, prefetch and pinned memory); first-batch
+    latency apart."""
     bs = config.data.batch_size
-    loader = DataLoader(dataset, batch_size=bs, shuffle=True, num_workers=config.data.num_workers, drop_last=True,
-                        pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(config.seed))
+    sampler = _EpochSampler(DistributedSampler(dataset, num_replicas=1, rank=0, shuffle=True, seed=config.seed,
+                                               drop_last=True))
+    loader = _data_loader(dataset, sampler, config, device, seed=config.seed)
     it = iter(loader)
     t0 = time.perf_counter()
     next(it)

@@ -4,7 +4,8 @@ The backbone follows 3DShape2VecSet / Hunyuan3D-2.1's shape VAE, in small named 
 
 - :class:`FourierEmbedder`: parameter-free Fourier features of 3D points, shared by encoder and decoder.
 - :class:`Attention` / :class:`AttentionBlock`: one attention class for self- and cross-attention.
-- :func:`farthest_point_sample`: picks the M latent queries among the surface points.
+- :func:`farthest_point_sample` (:mod:`vnc_warp.sampling`, one Warp kernel launch): picks the M latent queries
+  among the surface points.
 - :class:`PointEncoder`: the latent queries cross-attend to the embedded surface, then self-attend.
 - :class:`KLBottleneck` / :class:`DiagonalGaussian`: ``pre`` (width -> mean, logvar), ``post`` (latent -> width).
 - :class:`LatentDecoder`: self-attention latent transformer plus a chunked cross-attention query
@@ -34,6 +35,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
+from vnc_warp.sampling import farthest_point_sample
+
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import ModelConfig, TrainConfig
 
@@ -57,46 +60,6 @@ __all__ = [
     "build_model",
     "load_model",
 ]
-
-
-def farthest_point_sample(points: torch.Tensor, num_samples: int, *, start: torch.Tensor | None = None,
-                          random_start: bool = False) -> torch.Tensor:
-    """Batched farthest-point sampling.
-
-    Each next sample is the point farthest (Euclidean) from all samples taken so far; ties go to
-    the lowest index.
-
-    Args:
-        points: (B, N, 3) float positions.
-        num_samples: M <= N samples per batch item.
-        start: (B,) int64 index of the first sample; overrides ``random_start``.
-        random_start: draw the first index uniformly with the global torch RNG (training);
-            otherwise start at index 0 (deterministic).
-
-    Returns:
-        (B, M) int64 indices into ``points``.
-    """
-    if points.ndim != 3 or points.shape[-1] != 3:
-        raise ValueError(f"farthest_point_sample: points must be (B, N, 3), got {tuple(points.shape)}")
-    b, n, _ = points.shape
-    if not 1 <= num_samples <= n:
-        raise ValueError(f"farthest_point_sample: num_samples must be in [1, {n}], got {num_samples}")
-    if start is None:
-        start = (torch.randint(n, (b,), device=points.device) if random_start
-                 else torch.zeros(b, dtype=torch.long, device=points.device))
-    elif start.shape != (b,):
-        raise ValueError(f"farthest_point_sample: start must be ({b},), got {tuple(start.shape)}")
-    pts = points.detach().float()
-    rows = torch.arange(b, device=points.device)
-    out = torch.empty(b, num_samples, dtype=torch.long, device=points.device)
-    dist = torch.full((b, n), float("inf"), device=points.device)
-    cur = start.to(device=points.device, dtype=torch.long)
-    for i in range(num_samples):
-        out[:, i] = cur
-        d = (pts - pts[rows, cur].unsqueeze(1)).square().sum(-1)
-        dist = torch.minimum(dist, d)
-        cur = dist.argmax(-1)
-    return out
 
 
 def _gather_tokens(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

@@ -19,7 +19,9 @@ inference decodes, in eval mode from the posterior mean, beside ``tsdf`` decoded
 ``checkpoints/last.pt``. Resuming continues from
 ``checkpoints/last.pt`` exactly: model, optimiser, scheduler, per-rank RNG states, the data-loader
 position and the partly filled log window are restored, so the losses equal those of an uninterrupted
-run (given items that are a deterministic function of their index, or ``num_workers=0``).
+run (given items that are a deterministic function of their epoch and index, as every dataset here is, or
+``num_workers=0``). One DataLoader serves the whole run: its workers persist across epochs and learn each item's
+epoch from the sampler's key ``(epoch, index)``, not from ``set_epoch`` in the main process.
 
 Run control (nothing lost, nothing silently wrong):
 
@@ -80,6 +82,9 @@ RUNTIME_KEYS = ("name", "data.num_workers", "log_every", "ckpt_every", "bf16")
 #: Settings a resumed run may change, stated in a warning: functions of the step, followed from the resume step on.
 SCHEDULE_KEYS = ("optim.total_steps", "optim.warmup_steps", "optim.min_lr_ratio", "loss.kl_schedule",
                  "loss.kl_weight_start", "loss.kl_warmup_start", "loss.kl_warmup_steps")
+#: Batches each DataLoader worker keeps in flight (torch's default is 2): a slow item (a cache miss, a large
+#: mesh) is absorbed instead of stalling the step.
+PREFETCH_BATCHES = 4
 
 
 class TrainingError(ValueError):
@@ -309,18 +314,60 @@ def _setup_distributed(device: str | torch.device | None) -> _Dist:
     return _Dist(rank, world, local, dev, owns)
 
 
-class _SkipSampler(Sampler):
-    """The indices of ``base`` after the first ``skip`` (resuming inside an epoch)."""
+class _EpochItems(Dataset):
+    """The items of ``base`` keyed ``(epoch, i)``: item ``i`` of ``base`` set to that epoch, in whichever process
+    reads it. Persistent DataLoader workers keep their own copy of the dataset, which ``set_epoch`` in the main
+    process never reaches; the key carries the epoch to them."""
 
-    def __init__(self, base: Sampler, skip: int) -> None:
+    def __init__(self, base: Dataset) -> None:
         self.base = base
-        self.skip = skip
+        self.epoch: int | None = None
 
-    def __iter__(self) -> Iterator[int]:
-        return itertools.islice(iter(self.base), self.skip, None)
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
+        epoch, i = key
+        if epoch != self.epoch and hasattr(self.base, "set_epoch"):
+            self.base.set_epoch(epoch)
+        self.epoch = epoch
+        return self.base[i]
+
+
+class _EpochSampler(Sampler):
+    """``(epoch, i)`` for the indices of ``base`` in the epoch set by :meth:`start`, after the first ``skip``
+    (resuming inside an epoch): one sampler, so one DataLoader and its persistent workers, for a whole run."""
+
+    def __init__(self, base: DistributedSampler) -> None:
+        self.base = base
+        self.epoch = self.skip = 0
+
+    def start(self, epoch: int, skip: int) -> None:
+        """The next iteration yields epoch ``epoch``'s indices after the first ``skip``."""
+        self.epoch, self.skip = int(epoch), int(skip)
+        self.base.set_epoch(self.epoch)
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        return ((self.epoch, i) for i in itertools.islice(iter(self.base), self.skip, None))
 
     def __len__(self) -> int:
         return max(len(self.base) - self.skip, 0)
+
+
+def _data_loader(dataset: Dataset, sampler: _EpochSampler, config: TrainConfig, device: torch.device, *,
+                 seed: int) -> DataLoader:
+    """The run's one DataLoader of ``_EpochItems(dataset)`` in ``sampler``'s order.
+
+    With workers, they persist across epochs (no start-up, no re-read cache per epoch) and each keeps
+    ``PREFETCH_BATCHES`` batches in flight; batches come in pinned memory for a CUDA ``device``. Items equal those
+    read in the main process when they are a function of ``(epoch, i)``; the workers' own RNGs are seeded once,
+    from ``seed``.
+    """
+    workers = config.data.num_workers
+    extra = {"persistent_workers": True, "prefetch_factor": PREFETCH_BATCHES} if workers > 0 else {}
+    return DataLoader(_EpochItems(dataset), batch_size=config.data.batch_size, sampler=sampler, num_workers=workers,
+                      drop_last=True, generator=torch.Generator().manual_seed(seed), pin_memory=device.type == "cuda",
+                      worker_init_fn=_quiet_worker, **extra)
 
 
 def _seed_all(seed: int) -> None:
@@ -609,18 +656,9 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
         model = DistributedDataParallel(model, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None)
     model.train()
 
-    sampler = DistributedSampler(dataset, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True,
-                                 seed=config.seed, drop_last=True)
-    loader_gen = torch.Generator()
-
-    def loader_for(ep: int, skip_batches: int) -> DataLoader:
-        sampler.set_epoch(ep)
-        if hasattr(dataset, "set_epoch"):
-            dataset.set_epoch(ep)
-        loader_gen.manual_seed(config.seed * 1_000_003 + ep)  # worker seeds depend on the epoch only
-        return DataLoader(dataset, batch_size=bs, sampler=_SkipSampler(sampler, skip_batches * bs),
-                          num_workers=config.data.num_workers, drop_last=True, generator=loader_gen,
-                          pin_memory=ctx.device.type == "cuda", worker_init_fn=_quiet_worker)
+    sampler = _EpochSampler(DistributedSampler(dataset, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True,
+                                               seed=config.seed, drop_last=True))
+    loader = _data_loader(dataset, sampler, config, ctx.device, seed=config.seed * 1_000_003 + epoch)
 
     amp = config.bf16 and ctx.device.type == "cuda"
     if amp and not torch.cuda.is_bf16_supported():
@@ -661,7 +699,8 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     with _Signals() as signals:
         try:
             while step < end and not stop:
-                for batch in loader_for(epoch, batch_in_epoch):
+                sampler.start(epoch, batch_in_epoch * bs)
+                for batch in loader:
                     if not checked:
                         _check_batch(batch)
                         checked = True
@@ -701,6 +740,9 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                     batch_in_epoch = 0
         finally:
             bar.close()
+            # the persistent workers end with their loader, now: they ignore SIGTERM, so workers still alive at
+            # the interpreter's exit (a traceback holding this frame) would block it
+            del loader
     if stop:
         name = signal.Signals(signals.received).name if signals.received else "a signal on another process"
         raise TrainingInterrupted(f"stopped by {name} at step {step}; checkpoint {ckpt_path} written; run the same "

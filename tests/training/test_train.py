@@ -25,7 +25,16 @@ from vnc_warp.training.config import named_config
 from vnc_warp.training.inference import decode_mesh, extract_mesh
 from vnc_warp.training.model import build_model
 from vnc_warp.training.synthetic import EllipsoidTrajectories, ellipsoid_sdf
-from vnc_warp.training.train import Stage0Input, SuffixInput, Symmetric, lr_factor, open_dataset, train
+from vnc_warp.training.train import (
+    Stage0Input,
+    SuffixInput,
+    Symmetric,
+    _data_loader,
+    _EpochSampler,
+    lr_factor,
+    open_dataset,
+    train,
+)
 
 OVERFIT_STEPS = 150
 LOSS_DROP = 5.0
@@ -195,6 +204,69 @@ def test_resume_equals_uninterrupted(tmp_path):
     wa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["model"]
     wb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["model"]
     assert all(torch.allclose(wa[k], wb[k], atol=1e-6) for k in wa)
+
+
+def test_resume_with_workers_equals_uninterrupted(tmp_path):
+    """Persistent DataLoader workers keep resuming exact: items that change with the epoch (the box symmetries and
+    the encoder's earlier stage are drawn per (seed, epoch, i)) read by 2 workers over 3 epochs, stopped mid-epoch
+    and resumed, give the losses and weights of one uninterrupted run that reads them in the main process."""
+    ds = EllipsoidTrajectories(num_shapes=2, num_stages=4, seed=2)  # 8 items, 2 batches per epoch
+    cfg = _tiny(warmup_steps=2, total_steps=10)
+    cfg.data = dataclasses.replace(cfg.data, encoder_input="suffix", symmetry=True)
+    workers = dataclasses.replace(cfg.data, num_workers=2)
+    train(cfg, data=ds, out_dir=tmp_path / "a", device="cpu", stop_at=6, progress=False)
+    cfg.data = workers
+    train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", stop_at=3, progress=False)
+    train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", resume=True, stop_at=6, progress=False)
+    a, b = _rows(tmp_path / "a"), _rows(tmp_path / "b")
+    assert [r["step"] for r in b] == list(range(1, 7)) and b[-1]["epoch"] == 2
+    for ra, rb in zip(a, b):
+        for key in ("loss", "tsdf", "kl", "eik", "grad_norm"):
+            assert ra[key] == pytest.approx(rb[key], abs=1e-6, rel=0), (ra["step"], key)
+    wa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["model"]
+    wb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["model"]
+    assert all(torch.allclose(wa[k], wb[k], atol=1e-6) for k in wa)
+
+
+class _EpochTagged(torch.utils.data.Dataset):
+    """8 items whose value depends on (epoch, i), tagged with the process that read them."""
+
+    def __init__(self) -> None:
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return 8
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {"value": torch.tensor(100 * self.epoch + i), "pid": torch.tensor(os.getpid())}
+
+
+def test_loader_workers_persist_across_epochs_and_see_each_epoch():
+    """The run's DataLoader keeps the same 2 worker processes for every epoch; each item is the one read in the main
+    process at its epoch (the workers never see ``set_epoch``); a resumed epoch skips its first batches."""
+    cfg = _tiny()
+    cfg.data = dataclasses.replace(cfg.data, num_workers=2, batch_size=2)
+    ds = _EpochTagged()
+    sampler = _EpochSampler(torch.utils.data.DistributedSampler(ds, num_replicas=1, rank=0, shuffle=True, seed=3,
+                                                                drop_last=True))
+    loader = _data_loader(ds, sampler, cfg, torch.device("cpu"), seed=0)
+    try:
+        pids, orders = [], []
+        for epoch, skip in ((0, 0), (1, 0), (2, 0), (1, 4)):
+            sampler.start(epoch, skip)
+            batches = list(loader)
+            order = list(sampler.base)[skip:]
+            orders.append(order)
+            assert torch.cat([b["value"] for b in batches]).tolist() == [100 * epoch + i for i in order], (epoch, skip)
+            pids.append({int(p) for b in batches for p in b["pid"]})
+        assert orders[0] != orders[1] and orders[3] == orders[1][4:]
+        assert len(pids[0]) == 2 and os.getpid() not in pids[0] and all(p <= pids[0] for p in pids[1:])
+        assert loader.persistent_workers and loader.prefetch_factor >= 2
+    finally:
+        del loader  # its workers ignore SIGTERM: left to the interpreter's exit, they would block it
 
 
 def test_checkpoint_is_weights_only_and_atomic(overfit_run):
