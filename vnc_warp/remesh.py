@@ -1054,6 +1054,16 @@ class _Remesher:
             raise MeshError(f"sdf_remesh: {name}: the stage to continue from is not a closed manifold surface")
         self.spacing, self.name = float(spacing), name
 
+    def interpenetrates(self, positions: wp.array) -> bool:
+        """Whether the current surface at ``positions`` (its connectivity, relative to :attr:`origin`) has parts
+        inside other parts (two limbs that touched and went on into each other, a sheet folded over) by the rule
+        of :meth:`_disagreement`, so that a remesh of these positions goes through the level set, which joins the
+        parts, instead of re-tessellating them in place."""
+        st = self.state
+        st.set_positions(positions)
+        wm = st.frozen(winding=bool(self.use_winding))
+        return st.buried(wm, _BURIED_CELLS * self.spacing, self.use_winding) > _BURIED_SHARE * st.num_vertices
+
     def __call__(self, source: Any = None, *, positions: wp.array | None = None) -> tuple[Mesh, RemeshReport]:
         dev = self.device
         seconds: dict = {}
