@@ -926,7 +926,22 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             continue
         if descent and (kept is None or S_a < kept[0]):
             kept = (S_a, mesh, wp.clone(x_a))
-        mesh, report = remesher(positions=restart)
+        try:
+            mesh, report = remesher(positions=restart)
+        except MeshError as err:
+            if not touching:
+                raise
+            # parts tangled beyond a clean join (an oversized step folded the surface through itself): no state to
+            # go on from; back to the stage's best state at half the step, with no more joins in this stage
+            log.info("VNC-Flow stage %d: no join of the parts that met (%s); back to the best state", i, err)
+            contact = False
+            if descent:
+                stepper.backtrack(x_a, part_a)
+            else:
+                wp.copy(stepper.x, x_a)
+            ahead = p.eval_every // 2
+            history.append([it, S_a])
+            continue
         within.append(report.to_dict())
         stepper = _Stepper(mesh, taus, p, device, step_scale=step_scale)
         S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
