@@ -168,9 +168,10 @@ class FlowParams:
         substage_budget: the largest share of ``S_init`` the flow spends between two remeshes. A stage whose
             budget ``1/N`` is larger (N < 32 by default) is flowed in ``ceil(substage_budget^-1 / N)`` equal
             sub-stages, each remeshed and given new adaptive scales (Eq. 6) as a stage is, and only its last is
-            recorded (adaptive VNC-Flow; the Fig. 7 ablations and baselines keep one flow per stage): the flow between remeshes, and so the trajectory, is the same whatever N (before, at N = 8 a
-            body's stage ran out of iterations 0.1-0.2 short of its target and Spot's ears thinned to a 0.06
-            thickness ratio within one long stage; H200, c2eac1e).
+            recorded (adaptive VNC-Flow; the Fig. 7 ablations and baselines keep one flow per stage): the flow
+            between remeshes, and so the trajectory, is the same whatever N (before, at N = 8 a body's stage ran
+            out of iterations 0.1-0.2 short of its target and Spot's ears thinned to a 0.06 thickness ratio within
+            one long stage; H200, c2eac1e).
         stall_remeshes: a stage that stalls short of its target (``patience`` evaluations without progress)
             is remeshed from its best state and goes on, at most this many times (the same topology
             regularization as between stages; never in the last stage, whose target is out of reach).
@@ -695,8 +696,8 @@ def flow(
     taus = np.asarray(traj.info["taus"])
     S_init = traj.info["S_init"]
     # sub-stages per stage (adaptive VNC-Flow only: the Fig. 7 ablations and baselines keep one flow per stage)
-    m = max(1, math.ceil(1.0 / (p.stages * p.substage_budget) - 1e-9)) if p.method == "vnc" and \
-        p.scale_mode == "adaptive" else 1
+    adaptive = p.method == "vnc" and p.scale_mode == "adaptive"
+    m = max(1, math.ceil(1.0 / (p.stages * p.substage_budget) - 1e-9)) if adaptive else 1
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -729,7 +730,7 @@ def flow(
                         remesher.adopt(state, traj.info["remesh_spacing"], name)
             rec = _merge_substages(subs)
             last = traj.records[-1]
-            if p.method == "vnc" and p.scale_mode == "adaptive" and rec["S"] > last["S"] and _euler(prev) == 2:
+            if adaptive and rec["S"] > last["S"] and _euler(prev) == 2:
                 # A stage that ends above the previous one's S did not descend: it keeps the previous state and t
                 # (a shape with a handle is the exception: its S rises while the hole narrows until a remesh
                 # closes it)
