@@ -282,7 +282,8 @@ def _env(threads: int, device: str) -> dict:
 
 def _flow_args(in_dir: Path, out_dir: Path, p: dict, device: str) -> list[str]:
     return ["flow-batch", str(in_dir), str(out_dir), "--stages", str(p["stages"]), "--faces", str(p["faces"]),
-            "--max-iters", str(p["max_iters"]), "--device", device, "--no-progress"]
+            "--max-iters", str(p["max_iters"]), "--device", device, "--no-progress",
+            *(["--substage-budget", str(p["substage_budget"])] if p.get("substage_budget") else [])]
 
 
 def run_flow(k: int, in_dir: Path, out_dir: Path, p: dict, device: str, env: dict, logs: Path) -> dict:
@@ -514,6 +515,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--faces", type=int, default=None, help="face count of every flow state")
     ap.add_argument("--stages", type=int, default=None, help="VNC-Flow stages")
     ap.add_argument("--max-iters", type=int, default=None, help="iteration cap per stage")
+    ap.add_argument("--substage-budget", type=float, default=None,
+                    help="VNC-Flow's largest share of S_init between two remeshes (default: the flow's, 1/32)")
     ap.add_argument("--train-config", default=None,
                     help="C-VAE-I config: a named config, a JSON file, or experiment-gpu (the experiment's GPU model)")
     ap.add_argument("--steps", type=int, default=None, help="training steps of every K")
@@ -540,8 +543,8 @@ def main(argv=None) -> dict:
         raise SystemExit(f"--ranks must start with 1 and list distinct counts, got {args.ranks!r}")
     dev = args.device
     p = dict(PRESETS[args.preset or dev])
-    for key in ("procedural", "humanoids", "faces", "stages", "max_iters", "train_config", "steps", "global_batch",
-                "repeat"):
+    for key in ("procedural", "humanoids", "faces", "stages", "max_iters", "substage_budget", "train_config", "steps",
+                "global_batch", "repeat"):
         if getattr(args, key) is not None:
             p[key] = getattr(args, key)
     if args.real is not None:

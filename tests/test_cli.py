@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -59,12 +60,34 @@ def test_flow_warnings_are_log_lines(tmp_path, capsys):
     mesh = tmp_path / "shape.obj"
     vw.random_shape(1, subdivisions=2).save(mesh)
     rc = cli.main(["flow", str(mesh), "--stages", "1", "--max-iters", "3", "--out", str(tmp_path / "t"), "--device",
-                   "cpu", "--quiet"])
+                   "cpu", "--quiet", "--substage-budget", "1"])
     assert rc == 0
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert any(re.match(r"vnc-warp flow: warning: VNC-Flow stage 1: max_iters after 3 iterations", s) for s in lines), err
     assert "UserWarning" not in err and "warnings.warn" not in err and "it/s" not in err
+
+
+def test_flow_substage_budget_reaches_the_flow(tmp_path, capsys):
+    """``--substage-budget`` is the library's ``substage_budget``: the command's stage files are, bit for bit, those
+    of :func:`vnc_warp.flow` called with it (and not those of the default, which flows the stage in 16 sub-stages);
+    a value outside (0, 1] is a one-line error."""
+    mesh = tmp_path / "shape.obj"
+    vw.random_shape(1, subdivisions=2).save(mesh)
+    argv = ["flow", str(mesh), "--stages", "2", "--max-iters", "20", "--device", "cpu", "--no-progress"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert cli.main([*argv, "--out", str(tmp_path / "cli"), "--substage-budget", "0.5"]) == 0
+        api = vw.flow(str(mesh), stages=2, device="cpu", progress=False, max_iters=20, substage_budget=0.5,
+                      out_dir=tmp_path / "api")
+        fine = vw.flow(str(mesh), stages=2, device="cpu", progress=False, max_iters=20, out_dir=tmp_path / "fine")
+    cli_traj = vw.Trajectory.load(tmp_path / "cli")
+    assert [st.sha256 for st in cli_traj.stages] == [st.sha256 for st in api.stages]
+    assert cli_traj.stages[-1].sha256 != fine.stages[-1].sha256
+    capsys.readouterr()
+    assert cli.main([*argv, "--out", str(tmp_path / "bad"), "--substage-budget", "0"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "substage_budget" in err[0], err
 
 
 def test_no_cuda_driver_warning_on_a_cpu_machine():

@@ -289,7 +289,7 @@ def test_flow_batch_two_processes_split_without_overlap(tmp_path):
         random_shape(s, subdivisions=2).save(src / f"shape{s}.obj")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29571", "-m",
            "vnc_warp.cli", "flow-batch", str(src), str(tmp_path / "out"), "--stages", "1", "--device", "cpu",
-           "--no-progress"]
+           "--no-progress", "--substage-budget", "1"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     subprocess.run(cmd, check=True, env=env, capture_output=True, timeout=300)
     batch = json.loads((tmp_path / "out" / "batch.json").read_text())
@@ -302,7 +302,7 @@ def test_flow_batch_two_processes_split_without_overlap(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert main(["flow-batch", str(src), str(tmp_path / "one"), "--stages", "1", "--device", "cpu",
-                     "--no-progress"]) == 0
+                     "--no-progress", "--substage-budget", "1"]) == 0
     for s in range(3):
         two = Trajectory.load(tmp_path / "out" / f"shape{s}.obj")
         one = Trajectory.load(tmp_path / "one" / f"shape{s}.obj")
@@ -381,7 +381,7 @@ def test_flow_repairs_what_the_first_remesh_can_and_records_it(caplog):
         vw.load_mesh((v, f))
     with caplog.at_level("WARNING", logger="vnc_warp"), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the single stage's target t = 0 is out of reach
-        traj = flow((v, f), stages=1, faces=1000, device="cpu", progress=False, max_iters=20)
+        traj = flow((v, f), stages=1, faces=1000, device="cpu", progress=False, max_iters=20, substage_budget=1)
     said = [r.getMessage() for r in caplog.records if r.name.startswith("vnc_warp")]
     assert any("repaired the input: 1 non-manifold edge(s), 1 duplicate face(s)" in m for m in said), said
     assert any("repaired the input" in c for c in traj.info["remesh_changes"])
@@ -394,7 +394,8 @@ def test_flow_repairs_what_the_first_remesh_can_and_records_it(caplog):
     with pytest.raises(vw.MeshError, match="dropped 2"):
         flow(three, stages=1, faces=1000, device="cpu", progress=False)
     with pytest.warns(RemeshWarning, match="dropped 2"):
-        kept = flow(three, stages=1, faces=1000, device="cpu", progress=False, allow_changes=True, max_iters=20)
+        kept = flow(three, stages=1, faces=1000, device="cpu", progress=False, allow_changes=True, max_iters=20,
+                    substage_budget=1)
     assert kept.records[0]["remesh"]["dropped_components"] == 2
 
 
@@ -479,8 +480,8 @@ def test_flow_far_from_the_origin_matches_the_flow_at_the_origin():
     shift = 1e4 * m.bbox_diagonal * np.array([1.0, -2.0, 3.0]) / np.sqrt(14.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        near = flow((v, m.faces), stages=2, device="cpu", progress=False)
-        far = flow((v + shift, m.faces), stages=2, device="cpu", progress=False)
+        near = flow((v, m.faces), stages=2, device="cpu", progress=False, substage_budget=0.5)
+        far = flow((v + shift, m.faces), stages=2, device="cpu", progress=False, substage_budget=0.5)
     np.testing.assert_allclose(far.t, near.t, atol=1e-3)
     edge = near.meshes[0].mean_edge_length
     for a, b in zip(near.meshes, far.meshes):
@@ -558,7 +559,7 @@ def test_an_oversized_step_is_backtracked_so_every_stage_descends():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         traj = flow(m, stages=3, faces=1500, device="cpu", progress=False, step_fraction=2.0, max_lambda=60.0,
-                    max_iters=60)
+                    max_iters=60, substage_budget=1 / 3)
     for prev, rec in zip(traj.records[:-1], traj.records[1:]):
         assert rec["t"] < prev["t"] - 0.05, (rec["index"], rec["t"], prev["t"])
         start = rec["history"][0][1]

@@ -151,7 +151,7 @@ def test_flow_takes_every_input_kind(tmp_path):
     tm.vertices *= np.array([1.0, 0.7, 0.5])
     path = tmp_path / "ellipsoid.ply"
     tm.export(path)
-    kw = dict(stages=1, faces=300, device="cpu", progress=False, max_iters=2)
+    kw = dict(stages=1, faces=300, device="cpu", progress=False, max_iters=2, substage_budget=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the single short stage stops at its iteration cap
         first = [vw.flow(given, **kw).meshes[0] for given in (

@@ -25,12 +25,16 @@ from vnc_warp.flow import Trajectory, flow
 from vnc_warp.shapes import icosphere, random_shape
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# These tests are about files, errors and resumes, not the schedule: one flow per stage (no sub-stages) keeps
+# their flows short; a resume and the run it continues must agree on it.
+ONE_PIECE = {"substage_budget": 1.0}
+ONE_PIECE_ARGS = ["--substage-budget", "1"]
 
 
 def _quiet_flow(src, out, stages=1, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return flow(src, stages=stages, device="cpu", progress=False, out_dir=out, **kw)
+        return flow(src, stages=stages, device="cpu", progress=False, out_dir=out, **{**ONE_PIECE, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +184,7 @@ def _quiet_flow_warned(src, out):
     """Resume with the flow's own stage warnings hidden, its legacy-manifest warning kept."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="VNC-Flow stage")
-        return flow(src, stages=2, device="cpu", progress=False, out_dir=out)
+        return flow(src, stages=2, device="cpu", progress=False, out_dir=out, **ONE_PIECE)
 
 
 def test_a_run_killed_while_saving_resumes(meshes, tmp_path, monkeypatch):
@@ -256,7 +260,8 @@ def test_outputs_are_checked_before_computing(where, meshes, finished, a_file, r
 
 
 def _batch(in_dir, out_dir, *extra):
-    return main(["flow-batch", str(in_dir), str(out_dir), "--device", "cpu", "--no-progress", *extra])
+    return main(["flow-batch", str(in_dir), str(out_dir), "--device", "cpu", "--no-progress", *ONE_PIECE_ARGS,
+                 *extra])
 
 
 def _entries(out_dir):
@@ -330,7 +335,7 @@ def test_flow_batch_keys_outputs_by_file_name_and_accumulates(meshes, tmp_path):
 
 def _torchrun(args, port, **kw):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={port}", "-m",
-           "vnc_warp.cli", "flow-batch", *map(str, args), "--device", "cpu", "--no-progress"]
+           "vnc_warp.cli", "flow-batch", *map(str, args), "--device", "cpu", "--no-progress", *ONE_PIECE_ARGS]
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     return subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 

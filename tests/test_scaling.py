@@ -108,6 +108,7 @@ def test_one_command_makes_the_table(tmp_path):
     the 2-process trajectories bit for bit those of one process, the K = 1 repeat too, the first step's loss equal."""
     doc = scaling.main(["--device", "cpu", "--ranks", "1,2", "--out", str(tmp_path / "out"), "--real", "",
                         "--procedural", "2", "--stages", "1", "--max-iters", "20", "--faces", "600", "--steps", "2",
+                        "--substage-budget", "1",
                         "--global-batch", "2", "--repeat", "1", "--no-seed-spread"])
     on_disk = json.loads((tmp_path / "out" / "scaling.json").read_text())
     assert on_disk["table"] == json.loads(json.dumps(doc["table"]))

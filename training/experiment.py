@@ -89,6 +89,8 @@ class ExperimentConfig:
         real_resolution: SDF-remesh grid nodes for the real meshes (None: automatic).
         stages: VNC-Flow stages N.
         max_iters: VNC-Flow iteration cap per stage.
+        substage_budget: VNC-Flow's largest share of ``S_init`` between two remeshes (None: the flow's default,
+            1/32; ``1/stages`` flows each stage in one piece).
         flow_workers: processes making shapes and running flows at once (1: in this process).
         flow_budget_s: seconds after which procedural training shapes whose flow has not started are
             left out (held-out and real shapes always flow, first); None: no limit.
@@ -138,6 +140,7 @@ class ExperimentConfig:
     real_resolution: int | None = 40
     stages: int = 3
     max_iters: int = 300
+    substage_budget: float | None = None
     flow_workers: int = 1
     flow_budget_s: float | None = None
     num_samples: tuple[int, int, int] = (2048, 2048, 2048)
@@ -217,6 +220,8 @@ class ExperimentConfig:
             raise ValueError(f"real mesh names must be unique (train and held out together), got {names}")
         if min(self.stages, self.max_iters, self.flow_workers, self.eval_workers) < 1 or self.distill_stages < 0:
             raise ValueError("stages, max_iters, flow_workers and eval_workers must be >= 1, distill_stages >= 0")
+        if self.substage_budget is not None and not 0.0 < self.substage_budget <= 1.0:
+            raise ValueError(f"substage_budget must be in (0, 1] or None, got {self.substage_budget}")
         if min(self.num_samples) < 1 or self.repeats < 1 or self.distill_repeats < 1 or self.num_reference < 0:
             raise ValueError("num_samples, repeats and distill_repeats must be >= 1, num_reference >= 0")
         if not self.noise or min(self.noise) <= 0:
@@ -300,14 +305,16 @@ def _tiny_backbone() -> ModelConfig:
 
 def _cpu_smoke() -> ExperimentConfig:
     """About 2 minutes on a 2-core CPU: 6 shapes of 642 vertices (one held out), Spot and the SMPL body
-    remeshed to 1280 faces for training, fandisk held out, 3 stages, ~0.3M-parameter models, fixed steps."""
+    remeshed to 1280 faces for training, fandisk held out, 3 stages flowed in one piece each (no sub-stages),
+    ~0.3M-parameter models, fixed steps."""
     small = dict(batch=4, surface=256, queries=256, workers=0, eik_queries=64, log_every=10, ckpt_every=100,
                  on_surface=64, **_RECIPE)
     return ExperimentConfig(
         name="cpu-smoke", num_shapes=6, shape_seed=0, subdivisions=3, holdout_shapes=1,
         train_meshes=("spot_lowres.obj", "human_man.obj"), holdout_meshes=("fandisk.obj",),
         distill_mesh="human_man.obj",
-        real_faces=1280, real_resolution=40, stages=3, max_iters=200, flow_workers=1, num_samples=(2048, 2048, 2048),
+        real_faces=1280, real_resolution=40, stages=3, max_iters=200, substage_budget=1 / 3, flow_workers=1,
+        num_samples=(2048, 2048, 2048),
         num_reference=1024, grid_resolution=32, backbone=_tiny_backbone(),
         **_sections(lr=1e-3, steps=500, warmup=20, common=small),
         repeats=1, distill_repeats=4, torch_threads=1, resolution=48, n_points=5000, n_emd=500,
@@ -476,8 +483,9 @@ def _check_work_dir(work: Path, config: ExperimentConfig) -> None:
     key = {k: v for k, v in config.to_dict().items() if k not in _RUNTIME_KEYS}
     if stamp.is_file():
         old = json.loads(stamp.read_text())
-        if old != key:
-            diff = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
+        # a setting added since the stamp was written reads as None (its default) there
+        diff = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
+        if diff:
             raise ValueError(f"{work} holds an experiment with other settings ({', '.join(diff)} differ); "
                              "use another --work folder")
         return
@@ -551,7 +559,7 @@ def _flow_job(job: dict) -> dict:
             warnings.simplefilter("always")
             traj = vnc_warp.flow(job["source"], stages=job["stages"], faces=job["faces"], device=job["device"],
                                  out_dir=job["out_dir"], progress=False, resolution=job["resolution"],
-                                 max_iters=job["max_iters"])
+                                 max_iters=job["max_iters"], **job["params"])
     except Exception as exc:  # one failed shape must not end the experiment; it is reported
         return {"name": job["name"], "status": "failed", "error": f"{type(exc).__name__}: {exc}",
                 "seconds": time.perf_counter() - t0}
@@ -587,6 +595,8 @@ def _flows(shapes: list[_Shape], config: ExperimentConfig, device: str | None, w
         else:
             jobs.append({"name": s.name, "source": str(s.source), "stages": s.stages, "faces": s.faces,
                          "resolution": s.resolution, "max_iters": config.max_iters, "device": device,
+                         "params": ({} if config.substage_budget is None
+                                    else {"substage_budget": config.substage_budget}),
                          "out_dir": str(s.traj), "recipe": s.recipe, "optional": s.procedural and s.role == "train"})
     by_name = {s.name: s for s in shapes}
     t0 = time.perf_counter()

@@ -18,15 +18,22 @@ def add_flow_options(p) -> None:
                    help="adaptive scales (Eq. 6) or a fixed small/large scale (Fig. 7 ablations)")
     p.add_argument("--max-iters", type=int, default=300, help="iteration cap per stage")
     p.add_argument("--step-fraction", type=float, default=0.25, help="eta: per-iteration move in mean edge lengths")
+    p.add_argument("--substage-budget", type=float, default=None,
+                   help="largest share of S_init flowed between two remeshes (default 1/32: a stage of budget 1/N is "
+                        "flowed in ceil(32/N) sub-stages; 1/N flows each stage in one)")
     p.add_argument("--no-remesh", action="store_true", help="skip SDF remeshing (input must be watertight)")
     p.add_argument("--allow-changes", action="store_true",
                    help="accept a first remesh that drops components or loses parts thinner than its grid")
 
 
 def flow_kwargs(args) -> dict:
-    return dict(stages=args.stages, faces=args.faces, device=args.device, method=args.method,
-                scale_mode=args.scale_mode, max_iters=args.max_iters, step_fraction=args.step_fraction,
-                remesh=not args.no_remesh, allow_changes=args.allow_changes, progress=not args.no_progress)
+    """:func:`vnc_warp.flow.flow` keyword arguments from the options of :func:`add_flow_options`."""
+    kw = dict(stages=args.stages, faces=args.faces, device=args.device, method=args.method,
+              scale_mode=args.scale_mode, max_iters=args.max_iters, step_fraction=args.step_fraction,
+              remesh=not args.no_remesh, allow_changes=args.allow_changes, progress=not args.no_progress)
+    if args.substage_budget is not None:
+        kw["substage_budget"] = args.substage_budget
+    return kw
 
 
 def add_arguments(p) -> None:
