@@ -21,10 +21,17 @@ the preset's ``SuffixInput``), or on a dataset folder with ``--data``. Each row 
   :mod:`vnc_warp.sampling`).
 
 Every timed row runs ``--warmup`` steps, then ``--steps`` steps between ``torch.cuda.synchronize()`` calls; peak
-memory is ``torch.cuda.max_memory_allocated`` of the row. Prints a table and writes ``OUT/train_throughput.json``.
+memory is ``torch.cuda.max_memory_allocated`` of the row. Prints a line as each row starts and ends (flushed, so a
+piped log shows it), then a table, and writes ``OUT/train_throughput.json``.
 
-    python -m bench.train_throughput --device cuda --out OUT          # ~2-4 minutes on one H200
-    python -m bench.train_throughput --device cpu --tiny --out OUT    # the CPU check (cpu-smoke sizes)
+    timeout 480 python -m bench.train_throughput --device cuda --out OUT   # ~1-2 minutes on one H200 (estimate)
+    python -m bench.train_throughput --device cpu --tiny --out OUT         # the CPU check (cpu-smoke sizes)
+
+Until issue 24's h39 the ``a_train`` row handed ``train`` items already wrapped in ``SuffixInput``, which ``train``
+wrapped again: the outer wrapper, finding no ``item_ids`` / ``stage_times`` on the inner one, read all 3,968
+items twice in the main process before the first step (~260 s of the 333 s H200 run, nothing printed meanwhile),
+and then drew encoder inputs of encoder inputs (up to four reads per item, so its 165 items/s undercounts the
+experiment's loader). ``open_dataset`` now refuses a wrapped dataset.
 """
 
 from __future__ import annotations
@@ -151,8 +158,9 @@ def _loss_variant(config: TrainConfig, **weights) -> TrainConfig:
     return cfg
 
 
-def _train_row(config: TrainConfig, dataset: Dataset, device: torch.device, *, steps: int, tiny: bool) -> dict:
-    """``train`` as the experiment runs it; items/s over its log windows after the first (worker start-up)."""
+def _train_row(config: TrainConfig, source: Dataset | str, device: torch.device, *, steps: int, tiny: bool) -> dict:
+    """``train`` as the experiment runs it, on the items before :func:`open_dataset` (``train`` wraps them, as in
+    the experiment); items/s over its log windows after the first (worker start-up)."""
     cfg = TrainConfig.from_dict(config.to_dict())
     if tiny:
         cfg.log_every = 1
@@ -160,7 +168,7 @@ def _train_row(config: TrainConfig, dataset: Dataset, device: torch.device, *, s
     _reset_peak(device)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        train(cfg, data=dataset, out_dir=tmp, device=device, stop_at=cfg.log_every * (1 + windows), progress=False)
+        train(cfg, data=source, out_dir=tmp, device=device, stop_at=cfg.log_every * (1 + windows), progress=False)
         wall = time.perf_counter() - t0
         rows = [json.loads(line) for line in (Path(tmp) / "log.jsonl").read_text().splitlines() if line.strip()]
     measured = rows[1:]
@@ -205,8 +213,12 @@ def _fps_row(config: TrainConfig, batch: dict, device: torch.device, *, warmup: 
     return _row("h_fps", len(xyz), per_step, device, warmup_s=warm_s, num_samples=m, num_points=xyz.shape[1])
 
 
+def _log(message: str) -> None:
+    print(message, flush=True)  # progress reaches a piped log (a remote job's) as it happens
+
+
 def run(*, device: str, tiny: bool, steps: int, warmup: int, only: set[str], data: str | None = None,
-        compile_backend: str | None = None, log: Callable[[str], None] = print) -> dict:
+        compile_backend: str | None = None, log: Callable[[str], None] = _log) -> dict:
     """Measure the rows of ``only`` (names of :data:`ROWS`) and return the report (see the module docstring)."""
     dev = torch.device(device)
     if dev.type == "cuda":
@@ -218,11 +230,14 @@ def run(*, device: str, tiny: bool, steps: int, warmup: int, only: set[str], dat
     dataset = open_dataset(data if data is not None else base, config)
     compile_backend = compile_backend or ("inductor" if dev.type == "cuda" else "aot_eager")
     rows: list[dict] = []
+    t0 = time.perf_counter()
 
     def add(row: dict) -> None:
         rows.append(row)
-        log(f"  {row['variant']:<18} {row['items_per_s']:9.1f} items/s  {row['ms_per_step']:9.1f} ms/step")
+        log(f"  {row['variant']:<18} {row['items_per_s']:9.1f} items/s  {row['ms_per_step']:9.1f} ms/step  "
+            f"({time.perf_counter() - t0:.0f} s)")
 
+    log(f"  {len(only)} row(s) on {dev}, batch {bs}, {steps} timed steps each after {warmup} warm-up step(s)")
     batch = big = None
     if only & {"b_fixed_batch", "c_no_eikonal", "d_no_surface", "cd_no_grad_terms", "e_forward", "f_compile", "h_fps"}:
         batch = _fixed_batch(dataset, bs, dev, config.seed)
@@ -232,9 +247,10 @@ def run(*, device: str, tiny: bool, steps: int, warmup: int, only: set[str], dat
     for name in ROWS:
         if name not in only:
             continue
+        log(f"  {name:<18} ... ({time.perf_counter() - t0:.0f} s)")
         try:
             if name == "a_train":
-                add(_train_row(config, dataset, dev, steps=max(steps, 2 * config.log_every) if not tiny else steps,
+                add(_train_row(config, data if data is not None else base, dev, steps=max(steps, 2 * config.log_every) if not tiny else steps,
                                tiny=tiny))
             elif name == "a0_loader":
                 add(_loader_row(config, dataset, dev, **kw))

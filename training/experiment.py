@@ -30,7 +30,9 @@ The stages are grouped into :data:`STEPS` (data, train, generate, report) so tha
 separate commands of bounded length (``vnc-warp experiment --step N``): step N runs (or skips, when done)
 every stage up to its last one. Sizes come from an :class:`ExperimentConfig`; :data:`PRESETS` holds
 ``cpu-smoke`` (minutes on a 2-core CPU), ``cpu-rehearsal`` (the ``gpu`` pipeline at CPU sizes) and ``gpu``
-(one H100/H200, four steps of at most about 8 minutes).
+(one H100/H200, five calls of at most about 9 minutes). A call with ``max_minutes`` stops training (with a
+checkpoint) and generation at that time and returns ``unfinished``; the same call again goes on where it stopped,
+the models trained as in one call.
 """
 
 from __future__ import annotations
@@ -64,7 +66,12 @@ MODELS = {"cvae1": "C-VAE-I", "vae": "VAE (baseline; C-VAE-II's frozen encoder)"
 STEPS = {1: "data", 2: "train", 3: "generate", 4: "report"}
 # settings that change how fast a run goes, not what it computes: a work folder may be resumed with others
 _RUNTIME_KEYS = ("name", "flow_workers", "flow_budget_s", "eval_workers", "torch_threads", "figures",
-                 "train_budget_s", "distill_budget_s", "render_size", "data_workers")
+                 "train_budget_s", "distill_budget_s", "render_size", "data_workers", "max_minutes")
+#: A call with a time limit starts training a second model only with this many seconds left (or a quarter of the
+#: limit, when less): the first model of a call always starts, so that every call gets on.
+_MIN_START_S = 60.0
+#: Exit status of ``vnc-warp experiment`` when the time limit ended the call before its step was done.
+UNFINISHED_EXIT = 3
 
 
 @dataclass
@@ -109,8 +116,13 @@ class ExperimentConfig:
             for C-VAE-II, stage 0 or a trajectory suffix's start for C-VAE-I). ``optim.total_steps`` is the step count, or the cap with a budget.
         repeats: passes over the training stages per data-loader epoch.
         distill_repeats: the same for the single distilled trajectory.
-        train_budget_s: wall-clock seconds of C-VAE-I and, the same, of the VAE; None trains the configured steps.
-        distill_budget_s: wall-clock seconds of C-VAE-II; None trains the configured steps.
+        train_budget_s: wall-clock seconds of training C-VAE-I and, the same, of the VAE, in all (over every call);
+            None trains the configured steps.
+        distill_budget_s: wall-clock seconds of training C-VAE-II, in all; None trains the configured steps.
+        max_minutes: wall-clock minutes of one call of :func:`run_experiment`, counted from its start: training
+            stops with a checkpoint at the end of the first step past it, generation before the next prediction,
+            and the call returns with ``unfinished`` set; the same call again resumes (the run is the one trained
+            in one go). None: no limit. Flows, the dataset and the scoring are not cut.
         calibration_steps: steps timed before the step count of a budgeted model is fixed.
         min_steps: fewest steps of a budgeted model.
         data_workers: DataLoader workers of every model (None: each section's ``data.num_workers``).
@@ -156,6 +168,7 @@ class ExperimentConfig:
     distill_repeats: int = 4
     train_budget_s: float | None = None
     distill_budget_s: float | None = None
+    max_minutes: float | None = None
     calibration_steps: int = 30
     min_steps: int = 100
     data_workers: int | None = None
@@ -228,7 +241,7 @@ class ExperimentConfig:
             raise ValueError(f"noise must list positive standard deviations, got {list(self.noise)}")
         if not self.times or not all(0.0 <= t <= 1.0 for t in self.times):
             raise ValueError(f"times must be a non-empty list in [0, 1], got {list(self.times)}")
-        for key in ("flow_budget_s", "train_budget_s", "distill_budget_s"):
+        for key in ("flow_budget_s", "train_budget_s", "distill_budget_s", "max_minutes"):
             value = getattr(self, key)
             if value is not None and not value > 0:
                 raise ValueError(f"{key} must be positive or None, got {value}")
@@ -330,12 +343,14 @@ _BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
 
 
 def _gpu() -> ExperimentConfig:
-    """One H100 or H200 in four steps of at most ~8 minutes (about 20 minutes in all).
+    """One H100 or H200, about 25 minutes in five calls of at most ~9 minutes (steps 1, 2, 2, 3, 4: step 2 trains
+    two models for 300 s each and is cut by ``max_minutes`` = 8.5 into two calls).
 
     36 humanoids (5 held out), 16 blobs (1 held out) and 16 real meshes for training, the two real bodies held
     out; every shape flowed by VNC-Flow to 8 stages at 6,000 faces, the distilled body (human_man) to 32.
-    Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 180 s of
-    training each, C-VAE-II 200 s; 256^3 marching cubes, CD on 100k points, EMD on 4,096.
+    Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 300 s of
+    training each (their curves still fell at 180 s in the third H200 run), C-VAE-II 330 s; 256^3 marching
+    cubes, CD on 100k points, EMD on 4,096.
     """
     big = dict(batch=32, surface=4096, queries=8192, workers=8, eik_queries=512, log_every=20, ckpt_every=200,
                on_surface=1024, **_RECIPE)
@@ -350,7 +365,8 @@ def _gpu() -> ExperimentConfig:
                              num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
                              sdf_init=0.1),
         **_sections(lr=4e-4, steps=20000, warmup=100, common=big, distill=distill),
-        repeats=8, distill_repeats=64, train_budget_s=180.0, distill_budget_s=200.0, calibration_steps=30,
+        repeats=8, distill_repeats=64, train_budget_s=300.0, distill_budget_s=330.0, max_minutes=8.5,
+        calibration_steps=30,
         min_steps=100, torch_threads=None, resolution=256, n_points=100_000, n_emd=4096, eval_workers=14,
         figures=True, render_size=192)
 
@@ -367,8 +383,8 @@ def _cpu_rehearsal() -> ExperimentConfig:
         distill_stages=4, real_faces=1000, real_resolution=40, stages=2, max_iters=60, flow_workers=2,
         flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024, grid_resolution=32,
         backbone=_tiny_backbone(), **_sections(lr=1e-3, steps=400, warmup=20, common=small),
-        repeats=2, distill_repeats=4, train_budget_s=40.0, distill_budget_s=30.0, calibration_steps=10,
-        min_steps=20, torch_threads=1, resolution=48, n_points=4000, n_emd=256, eval_workers=2, render_size=96)
+        repeats=2, distill_repeats=4, train_budget_s=40.0, distill_budget_s=30.0, max_minutes=None,
+        calibration_steps=10, min_steps=20, torch_threads=1, resolution=48, n_points=4000, n_emd=256, eval_workers=2, render_size=96)
 
 
 PRESETS: dict[str, Callable[[], ExperimentConfig]] = {"cpu-smoke": _cpu_smoke, "cpu-rehearsal": _cpu_rehearsal,
@@ -665,8 +681,13 @@ def _rows(run: Path) -> list[dict]:
 
 
 def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | None, budget_s: float | None,
-           config: ExperimentConfig, progress: bool, log: Callable[[str], None]) -> dict:
-    """Train one model to its planned step count (resuming, or skipping when done) and summarize it."""
+           config: ExperimentConfig, progress: bool, log: Callable[[str], None], deadline: float | None = None) -> dict:
+    """Train one model to its planned step count (resuming, or skipping when done) and summarize it.
+
+    The budget is the model's in all: the calibration turns it into a step count once (``plan.json``), and every
+    call adds its seconds to the plan's. ``deadline`` (a :func:`time.monotonic` time) stops the training after
+    the calibration with a checkpoint; the summary's ``finished`` is then False and the same call resumes.
+    """
     from .train import train
 
     run.mkdir(parents=True, exist_ok=True)
@@ -703,19 +724,24 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
             with warnings.catch_warnings():
                 # the calibration ran under the nominal schedule; the planned one taking over is the design
                 warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
-                train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, progress=progress)
+                train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, deadline=deadline,
+                      progress=progress)
         finally:  # an interrupted run's seconds count too
             plan["seconds"] = plan.get("seconds", 0.0) + seconds + time.perf_counter() - t0
             plan_path.write_text(json.dumps(plan, indent=1))
     else:
         plan["seconds"] = plan.get("seconds", 0.0) + seconds
         plan_path.write_text(json.dumps(plan, indent=1))
+    done = _last_step(run)
+    if done < cfg.optim.total_steps:
+        log(f"  {kind}: stopped at the time limit at step {done} of {cfg.optim.total_steps} (checkpoint written)")
     rows = _rows(run)
     steady = [r["samples_per_s"] for r in rows[1:]] or [r["samples_per_s"] for r in rows]
     tail = rows[-max(1, len(rows) // 10):]
     final = {k: float(np.mean([r[k] for r in tail if r.get(k) is not None])) if any(r.get(k) is not None for r in tail)
              else None for k in _LOGGED}
-    return {"steps": cfg.optim.total_steps, "batch_size": cfg.data.batch_size, "seconds": plan["seconds"],
+    return {"steps": cfg.optim.total_steps, "done_steps": done, "finished": done >= cfg.optim.total_steps,
+            "batch_size": cfg.data.batch_size, "seconds": plan["seconds"],
             "samples_per_s": cfg.optim.total_steps * cfg.data.batch_size / max(plan["seconds"], 1e-9),
             "steady_samples_per_s": float(np.median(steady)) if steady else math.nan,
             "final": final, "budget_s": plan.get("budget_s"), "items": len(dataset),
@@ -867,17 +893,19 @@ def run_experiment(config: ExperimentConfig, *, out_dir: str | os.PathLike, work
     """
     if step is not None and step not in STEPS:
         raise ValueError(f"step must be one of {sorted(STEPS)} ({', '.join(STEPS.values())}), got {step}")
+    deadline = None if config.max_minutes is None else time.monotonic() + 60.0 * config.max_minutes
     threads = torch.get_num_threads()
     if config.torch_threads is not None:
         torch.set_num_threads(config.torch_threads)
     try:
-        return _run(config, Path(out_dir), Path(work_dir), meshes_dir, device, progress, log, step or max(STEPS))
+        return _run(config, Path(out_dir), Path(work_dir), meshes_dir, device, progress, log, step or max(STEPS),
+                    deadline)
     finally:
         torch.set_num_threads(threads)
 
 
 def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.PathLike | None, device: str | None,
-         progress: bool, log: Callable[[str], None], last_step: int) -> dict:
+         progress: bool, log: Callable[[str], None], last_step: int, deadline: float | None) -> dict:
     import vnc_warp._device  # noqa: F401  (quiet Warp first)
     import warp as wp
 
@@ -935,18 +963,33 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     training = {}
     runs = work / "runs"
     not_trained = () if distill is None or distill.role == "train" else (distill.name,)
+    unfinished: list[str] = []
+    started = False  # a model trained in this call: the first one always starts, so that every call gets on
     for kind in ("cvae1", "vae", "cvae2"):
         if kind == "cvae2" and (distill is None or last_step < 3):
+            continue
+        if unfinished:
+            unfinished.append(kind)
             continue
         cfg = run_config(config, kind, pretrained=str((runs / "vae" / "checkpoints" / "last.pt").resolve()))
         if config.data_workers is not None:
             cfg.data = dataclasses.replace(cfg.data, num_workers=config.data_workers)
+        budget = config.distill_budget_s if kind == "cvae2" else config.train_budget_s
+        if (started and deadline is not None and not _trained(runs / kind)
+                and deadline - time.monotonic() < min(_MIN_START_S, 15.0 * config.max_minutes)):
+            log(f"  {kind}: not started, {max(deadline - time.monotonic(), 0.0):.0f} s left of the time limit")
+            unfinished.append(kind)
+            continue
         with clock.stage(f"train_{kind}", log):
+            started = started or not _trained(runs / kind)
             training[kind] = _train(kind, cfg, _dataset(kind, cfg, config, work, distill, not_trained), runs / kind,
-                                    device=str(torch_device),
-                                    budget_s=config.distill_budget_s if kind == "cvae2" else config.train_budget_s,
-                                    config=config, progress=progress, log=log)
+                                    device=str(torch_device), budget_s=budget, config=config, progress=progress,
+                                    log=log, deadline=deadline)
+        if not training[kind]["finished"]:
+            unfinished.append(kind)
     results["training"] = training
+    if unfinished:
+        return _step_summary(last_step, results, clock, log, unfinished=unfinished)
     if last_step == 2:
         return _step_summary(2, results, clock, log)
 
@@ -960,7 +1003,9 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     targets = {"cvae1": both, "baseline": both, "cvae2": [distill] if "cvae2" in models else []}
     preds = work / "pred"
     with clock.stage("generate", log):
-        _generate(targets, models, preds, config)
+        left = _generate(targets, models, preds, config, deadline)
+    if left:
+        return _step_summary(last_step, results, clock, log, unfinished=[f"generate ({left} left)"])
     if last_step == 3:
         return _step_summary(3, results, clock, log)
 
@@ -998,14 +1043,27 @@ def _torch_device(device: str | None) -> torch.device:
     return resolve_device(device)
 
 
-def _step_summary(step: int, results: dict, clock: _Clock, log: Callable[[str], None]) -> dict:
+def _step_summary(step: int, results: dict, clock: _Clock, log: Callable[[str], None], *,
+                  unfinished: list[str] | None = None) -> dict:
+    """What a call did; ``unfinished`` names what the time limit left for the next call (then logged so)."""
     summary = {"step": step, "name": STEPS[step], "timings_s": {**clock.seconds, "total": clock.total()},
-               "notes": results["notes"]}
+               "notes": results["notes"], "unfinished": unfinished or []}
     if "training" in results:
-        summary["training"] = {k: {"steps": v["steps"], "seconds": v["seconds"], "final": v["final"]}
-                               for k, v in results["training"].items()}
-    log(f"[experiment] step {step} ({STEPS[step]}) done in {clock.total():.1f} s")
+        summary["training"] = {k: {"steps": v["steps"], "done_steps": v["done_steps"], "seconds": v["seconds"],
+                                   "final": v["final"]} for k, v in results["training"].items()}
+    if unfinished:
+        log(f"[experiment] step {step} ({STEPS[step]}) NOT finished after {clock.total():.1f} s (time limit "
+            f"{results['experiment']['max_minutes']} min): {', '.join(unfinished)} left; run the same command "
+            "again to go on from the checkpoints")
+    else:
+        log(f"[experiment] step {step} ({STEPS[step]}) done in {clock.total():.1f} s")
     return summary
+
+
+def _trained(run: Path) -> bool:
+    """The model of ``run`` reached its planned step count (``plan.json``) in an earlier call."""
+    plan = run / "plan.json"
+    return plan.is_file() and _last_step(run) >= json.loads(plan.read_text()).get("total_steps", math.inf)
 
 
 def _dataset(kind: str, cfg: TrainConfig, config: ExperimentConfig, work: Path, distill: _Shape | None,
@@ -1026,25 +1084,28 @@ def _dataset(kind: str, cfg: TrainConfig, config: ExperimentConfig, work: Path, 
     return data
 
 
-def _generate(targets: dict[str, list[_Shape]], models: dict, preds: Path, config: ExperimentConfig) -> None:
+def _generate(targets: dict[str, list[_Shape]], models: dict, preds: Path, config: ExperimentConfig,
+              deadline: float | None = None) -> int:
+    """Write the missing predictions; past ``deadline`` none is started. Returns how many are left."""
     from .baseline import latent_interpolation
     from .data import read_trajectory
     from .inference import predict_times
 
-    for method, trajs in targets.items():
-        for s in trajs:
-            folder = preds / method / s.name
-            if _predicted(folder, config.times):
-                continue
-            if method == "baseline":
-                model, cfg = models["vae"]
-                latent_interpolation(model, s.traj, config.times, folder, resolution=config.resolution,
-                                     num_surface=cfg.data.num_surface, seed=config.seed)
-            else:
-                model, cfg = models[method]
-                predict_times(model, read_trajectory(s.traj).load_stage(0), config.times, folder,
-                              num_surface=cfg.data.num_surface, resolution=config.resolution, seed=config.seed,
-                              name=s.name, meta={"method": method})
+    todo = [(m, s) for m, trajs in targets.items() for s in trajs if not _predicted(preds / m / s.name, config.times)]
+    for k, (method, s) in enumerate(todo):
+        if deadline is not None and time.monotonic() >= deadline:
+            return len(todo) - k
+        folder = preds / method / s.name
+        if method == "baseline":
+            model, cfg = models["vae"]
+            latent_interpolation(model, s.traj, config.times, folder, resolution=config.resolution,
+                                 num_surface=cfg.data.num_surface, seed=config.seed)
+        else:
+            model, cfg = models[method]
+            predict_times(model, read_trajectory(s.traj).load_stage(0), config.times, folder,
+                          num_surface=cfg.data.num_surface, resolution=config.resolution, seed=config.seed,
+                          name=s.name, meta={"method": method})
+    return 0
 
 
 _GROUPS = {"humanoid": "held-out humanoids", "blob": "held-out blobs", "real": "held-out real"}

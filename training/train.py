@@ -36,6 +36,10 @@ Run control (nothing lost, nothing silently wrong):
   step at the next log step under torchrun, whose agent waits 30 s before it kills), then raises
   :class:`TrainingInterrupted`; a second signal of the same kind stops at once (the last checkpoint is intact,
   writes being atomic).
+* A ``deadline`` (a :func:`time.monotonic` time) ends the run the same way, with a checkpoint at the end of the
+  first step past it (under torchrun, of the first log step past it), and returns with ``stopped="deadline"``
+  instead of raising: a run split over calls of bounded length (``vnc-warp experiment --max-minutes``) is the
+  run trained in one go.
 * A non-finite loss stops the run (:class:`TrainingError`) at the next log or checkpoint step, before anything is
   saved, naming the first bad step and the sample files of its batch; samples are checked for NaN when read.
 """
@@ -248,7 +252,12 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
 
     Raises:
         FileNotFoundError: the folder or its ``index.json`` is missing.
+        ValueError: ``data`` is already a :class:`Stage0Input`, :class:`SuffixInput` or :class:`Symmetric`.
     """
+    if isinstance(data, (Stage0Input, Symmetric)):
+        # wrapping twice draws encoder inputs of encoder inputs and reads every item up front (no item_ids)
+        raise ValueError(f"open_dataset: the dataset is already wrapped ({type(data).__name__}); pass the items it "
+                         "wraps, and config.data wraps them")
     if isinstance(data, Dataset):
         dataset = data
     else:
@@ -427,7 +436,7 @@ def _optimizer(model: torch.nn.Module, config: TrainConfig) -> tuple[torch.optim
 
 def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: str | os.PathLike,
           device: str | torch.device | None = None, resume: bool | None = None, restart: bool = False,
-          stop_at: int | None = None, progress: bool = True) -> dict[str, Any]:
+          stop_at: int | None = None, deadline: float | None = None, progress: bool = True) -> dict[str, Any]:
     """Train the model ``config.model`` describes (see the module docstring for run control).
 
     Args:
@@ -440,12 +449,16 @@ def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: st
         restart: discard the folder's checkpoint and log and start from step 0 (not with ``resume=True``).
         stop_at: stop after this step (>= 1; the schedule still follows ``total_steps``); default
             ``total_steps``. A run already at or past it trains nothing.
+        deadline: a :func:`time.monotonic` time; the first step that ends after it ends the run with a checkpoint
+            (under torchrun, the first log step after it), as a signal does but without raising: the summary's
+            ``stopped`` says so, and training the same run again resumes it exactly.
         progress: show a tqdm bar on rank 0.
 
     Returns:
         Summary of this process: ``rank``, ``world_size``, ``device``, ``start_step``, ``step``,
         ``checkpoint`` (path), ``last`` (loss terms of the last logged window), ``samples_per_s``
-        (mean over the run, all ranks).
+        (mean over the run, all ranks), ``stopped`` (``"deadline"`` when the deadline ended the run before its
+        end, else None).
 
     Raises:
         FileNotFoundError: missing data folder, or ``resume=True`` without a checkpoint.
@@ -465,7 +478,7 @@ def train(config: TrainConfig, *, data: str | os.PathLike | Dataset, out_dir: st
     ctx = _setup_distributed(device)
     try:
         return _run(config, data, Path(out_dir), ctx, resume=resume, restart=restart, stop_at=stop_at,
-                    progress=progress)
+                    deadline=deadline, progress=progress)
     finally:
         if ctx.owns_group:
             dist.destroy_process_group()
@@ -595,7 +608,7 @@ def _prepare_folder(out: Path, ckpt_path: Path, ctx: _Dist, resume: bool | None,
 
 
 def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool | None, restart: bool,
-         stop_at: int | None, progress: bool) -> dict[str, Any]:
+         stop_at: int | None, deadline: float | None, progress: bool) -> dict[str, Any]:
     ckpt_path = out / "checkpoints" / "last.pt"
     resuming = _prepare_folder(out, ckpt_path, ctx, resume, restart)
     state = None
@@ -620,7 +633,7 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                           stacklevel=3)
         return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device),
                 "start_step": state["step"], "step": state["step"], "checkpoint": str(ckpt_path), "last": {},
-                "samples_per_s": 0.0}
+                "samples_per_s": 0.0, "stopped": None}
     dataset = open_dataset(data, config)
     bs = config.data.batch_size
     if len(dataset) < bs * ctx.world_size:
@@ -673,17 +686,21 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     last: dict[str, float] = {}
     checked = False
     saved_at = step
-    stop = False
+    stop = late = False
 
     def save() -> None:
         nonlocal saved_at
         _save(ckpt_path, model, config, step, opt, sched, epoch, batch_in_epoch, ctx, window.state())
         saved_at = step
 
-    def check(signals: _Signals) -> bool:
-        """Every process's verdict on non-finite losses (raised) and stop requests since the last check."""
+    def overdue() -> bool:
+        return deadline is not None and time.monotonic() >= deadline
+
+    def check(signals: _Signals) -> tuple[bool, bool]:
+        """Every process's verdict on non-finite losses (raised), stop requests and the deadline since the last
+        check: (a signal, the deadline) asks to stop."""
         bad = window.first_nonfinite()
-        flags = torch.tensor([bad is not None, signals.received is not None], dtype=torch.float64,
+        flags = torch.tensor([bad is not None, signals.received is not None, overdue()], dtype=torch.float64,
                              device=ctx.device)
         if ctx.world_size > 1:
             dist.all_reduce(flags)
@@ -694,11 +711,11 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                 "no checkpoint was written"
             raise TrainingError(f"non-finite loss {where}; stopped without saving: {kept}. Check those samples "
                                 "(`vnc-warp dataset --verify`) or lower optim.lr")
-        return bool(flags[1] > 0)
+        return bool(flags[1] > 0), bool(flags[2] > 0)
 
     with _Signals() as signals:
         try:
-            while step < end and not stop:
+            while step < end and not (stop or late):
                 sampler.start(epoch, batch_in_epoch * bs)
                 for batch in loader:
                     if not checked:
@@ -712,8 +729,8 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                     bar.update(1)
                     at_log = step % config.log_every == 0 or step == end
                     at_ckpt = step % config.ckpt_every == 0 or step == end
-                    if at_log or at_ckpt or (ctx.world_size == 1 and signals.received is not None):
-                        stop = check(signals)
+                    if at_log or at_ckpt or (ctx.world_size == 1 and (signals.received is not None or overdue())):
+                        stop, late = check(signals)
                     if at_log:
                         sums = window.sums
                         eval_tsdf = _eval_tsdf(unwrap(model), b, config, amp)
@@ -731,9 +748,9 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
                             bar.set_postfix(loss=f"{last['loss']:.4g}")
                         window.reset()
                         window_t0 = time.perf_counter()
-                    if at_ckpt or stop:
+                    if at_ckpt or stop or late:
                         save()
-                    if step >= end or stop:
+                    if step >= end or stop or late:
                         break
                 else:
                     epoch += 1
@@ -750,7 +767,8 @@ def _run(config: TrainConfig, data: Any, out: Path, ctx: _Dist, *, resume: bool 
     total_time = time.perf_counter() - run_t0
     return {"rank": ctx.rank, "world_size": ctx.world_size, "device": str(ctx.device), "start_step": start_step,
             "step": step, "checkpoint": str(ckpt_path), "last": last,
-            "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9)}
+            "samples_per_s": (step - start_step) * bs * ctx.world_size / max(total_time, 1e-9),
+            "stopped": "deadline" if late and step < end else None}
 
 
 def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:

@@ -190,6 +190,38 @@ def test_sigint_saves_a_checkpoint_and_resume_is_exact(tmp_path):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
 
 
+def test_a_deadline_stops_with_a_checkpoint_and_resume_is_exact(tmp_path):
+    """A deadline (a run split over calls of bounded length, `vnc-warp experiment --max-minutes`) ends the run after
+    the step under way with a checkpoint and returns ``stopped="deadline"`` (no exception); calls until the end give
+    the losses, log rows and weights of an uninterrupted run, and a finished run is not trained again."""
+    ds = EllipsoidTrajectories(num_shapes=2, num_stages=4, seed=5)
+    cfg = _tiny(warmup_steps=2, total_steps=9)
+    cfg.log_every, cfg.ckpt_every = 3, 1000
+    whole = train(cfg, data=ds, out_dir=tmp_path / "a", device="cpu", progress=False)
+    assert whole["stopped"] is None and whole["step"] == 9
+    past = time.monotonic() - 1.0  # each call takes exactly one step: the first step ends past the deadline
+    calls = [train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", progress=False, deadline=past)
+             for _ in range(4)]
+    assert [(c["start_step"], c["step"], c["stopped"]) for c in calls] == [(k, k + 1, "deadline") for k in range(4)]
+    assert load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["step"] == 4
+    rest = train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", progress=False,
+                 deadline=time.monotonic() + 3600.0)
+    assert (rest["start_step"], rest["step"], rest["stopped"]) == (4, 9, None)
+    a, b = _rows(tmp_path / "a"), _rows(tmp_path / "b")
+    assert [r["step"] for r in b] == [3, 6, 9]
+    for ra, rb in zip(a, b):
+        for key in ("loss", "tsdf", "eval_tsdf", "kl", "eik", "grad_norm", "lr", "beta_kl", "epoch"):
+            assert ra[key] == rb[key], (ra["step"], key)
+    wa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["model"]
+    wb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["model"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    stamp = (tmp_path / "b" / "checkpoints" / "last.pt").stat().st_mtime_ns
+    with pytest.warns(UserWarning, match="nothing to train"):
+        again = train(cfg, data=ds, out_dir=tmp_path / "b", device="cpu", progress=False, deadline=past)
+    assert (again["step"], again["stopped"]) == (9, None)
+    assert (tmp_path / "b" / "checkpoints" / "last.pt").stat().st_mtime_ns == stamp
+
+
 def test_sigterm_from_outside_saves_a_checkpoint(dataset_dir, tmp_path):
     """SIGTERM (a scheduler's kill) ended `vnc-warp train` without a checkpoint; now it exits 130 with one line
     naming the checkpoint it wrote, and the same command resumes from that step."""

@@ -394,13 +394,17 @@ def test_symmetric_moves_every_point_set_by_one_box_symmetry():
 
 def test_open_dataset_wraps_by_config():
     """data.encoder_input = 'suffix' and data.symmetry pick SuffixInput and Symmetric; an unknown encoder input
-    is refused by the config."""
+    is refused by the config; a dataset wrapped already is refused (the training-throughput bench passed one to
+    ``train``, which wrapped it again: encoder inputs of encoder inputs, every item read twice up front)."""
     ds = EllipsoidTrajectories(num_shapes=1, num_stages=3)
     cfg = named_config("tiny")
     cfg.data = dataclasses.replace(cfg.data, encoder_input="suffix", symmetry=True, stage0_share=0.3)
     wrapped = open_dataset(ds, cfg)
     assert isinstance(wrapped, Symmetric) and isinstance(wrapped.base, SuffixInput)
     assert wrapped.base.stage0_share == 0.3
+    for again in (wrapped, wrapped.base):
+        with pytest.raises(ValueError, match="already wrapped"):
+            open_dataset(again, cfg)
     cfg.data = dataclasses.replace(cfg.data, encoder_input="stage1")
     with pytest.raises(ValueError, match="encoder_input"):
         cfg.validate()

@@ -31,19 +31,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override the seconds of C-VAE-I and, equally, of the VAE (0: none, the configured steps)")
     parser.add_argument("--distill-budget", type=float, default=None,
                         help="override the seconds of C-VAE-II (0: none, the configured steps)")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="wall-clock minutes of this call (0: none; default: the preset's, 8.5 for gpu): training "
+                             "stops with a checkpoint and generation between predictions, the command exits with "
+                             "status 3 and the same command resumes; flows, dataset and scoring are not cut")
     parser.add_argument("--flow-workers", type=int, default=None, help="override the preset's flow processes")
     parser.add_argument("--eval-workers", type=int, default=None, help="override the preset's scoring processes")
     parser.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
 
 
 def run(args: argparse.Namespace) -> int:
-    from vnc_warp.training.experiment import load_experiment, run_experiment
+    from vnc_warp.training.experiment import UNFINISHED_EXIT, load_experiment, run_experiment
 
     config = load_experiment(args.preset)
     if args.train_budget is not None:
         config.train_budget_s = args.train_budget or None
     if args.distill_budget is not None:
         config.distill_budget_s = args.distill_budget or None
+    if args.max_minutes is not None:
+        config.max_minutes = args.max_minutes or None
     if args.flow_workers is not None:
         config.flow_workers = args.flow_workers
     if args.eval_workers is not None:
@@ -58,6 +64,10 @@ def run(args: argparse.Namespace) -> int:
                              log=logging.getLogger("vnc_warp").info)
     if "evaluation" not in results:
         print(json.dumps(results, indent=1))
+        if results["unfinished"]:
+            print(f"step {results['step']} not finished within --max-minutes {config.max_minutes}: "
+                  f"{', '.join(results['unfinished'])} left; run the same command again to resume")
+            return UNFINISHED_EXIT
         return 0
     print((Path(args.out) / "results.md").read_text())
     failed = sum(row["failed"] for rows in results["evaluation"]["groups"].values() for row in rows.values())
