@@ -13,9 +13,11 @@ For every mesh (``--all``: every closed mesh in the folder; ``--names``: those) 
   rays along inward normals, over the radius of the sphere of equal area);
 * **remesh alone**: the change of the total VNC-AUC ``S`` (16 scales of stage 0) when stage 0 is remeshed once
   more with the trajectory's remesher and nothing else happens;
-* **seconds**: wall seconds of the whole flow (stage 0's remesh included), and the part breakdown summed over
-  stages: remesh (input, SDF, marching cubes, components, decimation, regularization, checks) and stages (setup:
-  adaptive scales and thickness budgets; steps; S evaluations; record).
+* **seconds**: wall seconds of the whole flow (stage 0's remesh included; kernel compilation and the device's
+  context are paid by a warm-up flow of a small sphere before the first mesh, reported apart), and the part
+  breakdown summed over stages: remeshes between stages (input, SDF, marching cubes, components, decimation,
+  regularization, checks), remeshes within stages (how many, and the same parts) and stages (setup: adaptive
+  scales and thickness budgets; steps; S evaluations; contact checks; remeshes within, all told; record).
 
 Writes ``OUT/flow_report.json`` (every stage record) and ``OUT/flow_report.md`` (the summary table, tuned and
 held-out meshes apart, and the part breakdown: ready to paste into the README), and for human_man and FAUST 025
@@ -50,7 +52,8 @@ VARIANTS = {
     "mcf_implicit": {"method": "mcf_implicit"},
 }
 REMESH_PARTS = ("input", "sdf", "marching_cubes", "components", "decimation", "regularize", "checks")
-STAGE_PARTS = ("setup", "steps", "evaluations", "record")
+# stage.checks: the contact check of each evaluation; stage.remesh: the remeshes within stages, all told
+STAGE_PARTS = ("setup", "steps", "evaluations", "checks", "remesh", "record")
 
 
 def closed_meshes(folder: str) -> list[str]:
@@ -99,12 +102,21 @@ def summarize(traj, n: int) -> dict:
 
 
 def parts(traj) -> dict:
-    """Seconds per part summed over the trajectory's records."""
+    """Seconds per part summed over the trajectory's records: ``remesh.*`` the remeshes between stages (stage 0's
+    first remesh of the input included), ``within.*`` the remeshes within stages (contact joins, stalls; ``within.n``
+    counts them), ``stage.*`` the stages' own parts (``stage.remesh`` is the whole of each remesh within a stage:
+    ``within.*`` and setting the flow up again on its result)."""
     out = {f"remesh.{k}": 0.0 for k in REMESH_PARTS}
+    out.update({f"within.{k}": 0.0 for k in REMESH_PARTS})
+    out["within.n"] = 0
     out.update({f"stage.{k}": 0.0 for k in STAGE_PARTS})
     for r in traj.records:
         for k, v in ((r.get("remesh") or {}).get("seconds") or {}).items():
             out[f"remesh.{k}"] = out.get(f"remesh.{k}", 0.0) + v
+        for rm in r.get("remeshes_within") or []:
+            out["within.n"] += 1
+            for k, v in (rm.get("seconds") or {}).items():
+                out[f"within.{k}"] = out.get(f"within.{k}", 0.0) + v
         for k, v in (r.get("parts") or {}).items():
             out[f"stage.{k}"] = out.get(f"stage.{k}", 0.0) + v
     return out
@@ -128,6 +140,24 @@ def remesh_alone(traj, device) -> dict:
     S0, S1 = traj.info["S_init"], total_complexity(m1, taus, kappa=p["kappa"], device=device)
     return {"dS": S1 / S0 - 1.0, "method": report.method, "why": report.why_level_set, "seconds": seconds,
             "parts": report.seconds}
+
+
+def warm_up(device) -> float:
+    """Seconds of a short flow of a small sphere (both remesh paths: the first one changes its face count).
+
+    Warp compiles, or loads from its cache, each kernel module at its first launch, and the first call on a device
+    creates its context: on a fresh GPU machine that charged 13.7 s to human_man's first remesh (remesh.input 2.7 s,
+    remesh.checks 5.6 s; a5f9293's run, on a machine that had compiled them, took 0.7 s there). Paid here, before
+    anything is timed, and reported apart.
+    """
+    from vnc_warp.flow import flow
+    from vnc_warp.shapes import icosphere
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        flow(icosphere(3), stages=2, faces=600, device=device, progress=False)
+    return time.perf_counter() - t0
 
 
 def _run(path, variant, params, args):
@@ -206,11 +236,14 @@ def summary_table(runs: list, title: str) -> list[str]:
 
 
 def parts_table(runs: list) -> list[str]:
-    keys = [f"remesh.{k}" for k in REMESH_PARTS] + [f"stage.{k}" for k in STAGE_PARTS]
+    keys = ([f"remesh.{k}" for k in REMESH_PARTS] + ["within.n"] + [f"within.{k}" for k in REMESH_PARTS]
+            + [f"stage.{k}" for k in STAGE_PARTS])
     lines = ["| mesh | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
     for r in runs:
         if "error" not in r:
-            lines.append(f"| {r['mesh']} | " + " | ".join(f"{r['parts'].get(k, 0.0):.2f}" for k in keys) + " |")
+            p = r["parts"]
+            lines.append(f"| {r['mesh']} | " + " | ".join(str(p.get(k, 0)) if k == "within.n" else f"{p.get(k, 0.0):.2f}"
+                                                          for k in keys) + " |")
     return lines
 
 
@@ -267,6 +300,8 @@ def main(argv=None) -> int:
               "stages": args.stages, "faces": args.faces, "max_faces": args.max_faces, "tuned": list(TUNED),
               "command": "python -m bench.flow_report " + " ".join(argv if argv is not None else os.sys.argv[1:]),
               "runs": [], "skipped": []}
+    report["warmup_seconds"] = warm_up(args.device)
+    print(f"warm-up (kernel modules, device context): {report['warmup_seconds']:.1f} s", flush=True)
     start = time.perf_counter()
     per_face = 0.0  # the slowest finished run's seconds per face: what the next one is expected to take
     for name, variant in jobs:
@@ -295,7 +330,8 @@ def main(argv=None) -> int:
             json.dump(report, fh, indent=1)
     flows = [r for r in report["runs"] if r["variant"] == "vnc_adaptive"]
     body = [f"Device: {report['device']}; stages {args.stages}; faces: each input's, at most {args.max_faces:,}; "
-            f"warp {report['warp']}; command: `{report['command']}`", ""]
+            f"warp {report['warp']}; command: `{report['command']}`; warm-up before timing (kernel modules, device "
+            f"context): {report['warmup_seconds']:.1f} s", ""]
     if flows:
         body += summary_table([r for r in flows if not r.get("held_out")], "Meshes the rule constants were tuned on")
         body += [""] + summary_table([r for r in flows if r.get("held_out")], "Held-out meshes") + [""]

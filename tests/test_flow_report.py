@@ -13,7 +13,8 @@ from vnc_warp.shapes import random_shape
 def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
     """Two 4-stage runs at 600 faces: the first is kept with its filmstrip; every summary number is present and
     agrees with the per-stage records (max |t_i - (1 - i/N)|, the smallest thickness ratio); the part breakdown
-    has the remesh and stage parts. Run again with a budget already spent after one mesh, the second is skipped
+    has the remesh, within-stage remesh and stage parts (contact checks and remeshes within stages too, which the
+    table left out), and the warm-up before timing is reported. Run again with a budget already spent after one mesh, the second is skipped
     and named as skipped."""
     meshes = tmp_path / "meshes"
     meshes.mkdir()
@@ -33,12 +34,13 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
         ratios = [r["thickness_ratio"] for r in stages[1:]]
         assert np.isclose(run["min_thickness_ratio"], min(ratios))
         assert np.isfinite(run["remesh_alone"]["dS"]) and run["seconds"] > 0
-        assert {"remesh.sdf", "remesh.marching_cubes", "remesh.decimation", "remesh.checks", "stage.steps",
-                "stage.evaluations"} <= set(run["parts"])
+        assert {"remesh.sdf", "remesh.marching_cubes", "remesh.decimation", "remesh.checks", "within.n", "within.sdf",
+                "stage.steps", "stage.evaluations", "stage.checks", "stage.remesh"} <= set(run["parts"])
     assert (out / "filmstrip_shape0.png").stat().st_size > 1000
     assert not (out / "filmstrip_shape1.png").exists()
+    assert report["warmup_seconds"] > 0
     md = (out / "flow_report.md").read_text()
-    assert "| shape0.obj |" in md and "S change, one remesh" in md and "remesh.sdf" in md
+    assert "| shape0.obj |" in md and "S change, one remesh" in md and "remesh.sdf" in md and "stage.remesh" in md
 
     spent = tmp_path / "spent"
     assert flow_report.main(args[:-1] + [str(spent), "--max-minutes", "1e-6"]) == 0
