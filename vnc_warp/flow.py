@@ -41,10 +41,15 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
   merges) and thereby already took ``S`` below its window records the remeshed state with no flow step
   (status ``remesh``); a stage that stops improving before its target ends ``converged`` with the ``t`` it
-  reached; ``max_iters`` likewise. A stalled stage is remeshed from its best state and goes on (at most
-  ``stall_remeshes`` times), at half the step if ``S`` never fell below the stage's start; on a shape with a
-  handle whose ``S`` never fell, from its current state instead: a handle narrowing raises ``S`` (on a torus
-  the thin-part rule fattens the tube and closes the hole), and only a remesh where the flow went closes it.
+  reached; ``max_iters`` likewise, unless the **smoothing fallback** takes it on: where Eq. (5) stops lowering
+  ``S`` short of the window (it stands still or climbs ``S`` on a fattened dumbbell whose neck became a waist),
+  backward-Euler mean-curvature steps (``_FALLBACK_DT``) from the best state, each kept only while it lowers ``S``
+  and the last searched back on its chord, land it (status ``smoothed``, the steps in ``exception``); before, such a
+  stage recorded the previous state, and every later stage repeated it. A stalled stage is remeshed from its best
+  state and goes on (at most ``stall_remeshes`` times), at half the step if ``S`` never fell below the stage's
+  start; on a shape with a handle whose ``S`` never fell, from its current state instead: a handle narrowing
+  raises ``S`` (on a torus the thin-part rule fattens the tube and closes the hole), and only a remesh where the
+  flow went closes it.
   A stage whose remesh, between stages or within, changed the topology records it in ``exception``; its
   ``t`` may lie above its window, even above 1 (a torus: 1.58 at the stage that closed its hole). A stage
   that cannot go on keeps its best state, also one from before a remesh within it; a stage whose best ``S``
@@ -104,6 +109,15 @@ _RISE = 0.05
 # itself under noise of 1 % of an edge length (fandisk at 3,000 faces, t = 0.063: 0.063 -> 0.100), so a rise
 # measured against S alone halved the step of every late stage until it stalled (issue 21, H200 at c2eac1e)
 _RISE_INIT = 0.05
+# A stage where Eq. (5) stops lowering S short of its window (max_iters or converged: a dumbbell whose neck fattened
+# into a waist, at t 0.75, 3000 faces: every run of steps from there raised S, whatever the step, the scales (phi 1/8
+# to 1, tau_min, tau_max) or the thin-part rule; hammer, mushroom and nefertiti on the H200) went on
+# recording the same state, stage after stage. Backward-Euler mean-curvature steps of this many squared mean edge
+# lengths lower S there (the dumbbell: 0.763 -> 0.613 -> 0.543; 5 overshoots into a shrinking, pinching shape whose
+# S climbs) ...
+_FALLBACK_DT = 1.0
+# ... at most this many per stage, each kept only while it lowers S.
+_FALLBACK_STEPS = 8
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -962,6 +976,14 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         if kept is not None and kept[0] < S_a:
             S_a, stepper.mesh, stepper.x = kept
             rec["kept"] = True
+    smoothed = None
+    if status in ("max_iters", "converged") and S_a > target + tol and p.method == "vnc" and p.scale_mode == "adaptive":
+        smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
+        if smoothed is not None:
+            stepper, S_a, found, steps = smoothed
+            evaluations += found
+            rec["kept"] = True
+            clock.lap("fallback")
     if status == "collapsed":
         state = last_valid
         S_a = total_complexity(state, taus, kappa=p.kappa, device=device)
@@ -985,15 +1007,53 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged"):
-        exception = ((exception + "; ") if exception else "") + (
-            f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f}); "
-            "recording the t reached")
+        if smoothed is not None:
+            exception = ((exception + "; ") if exception else "") + (
+                f"Eq. (5) did not descend ({status} after {it} iterations); {smoothed[3]} implicit smoothing step(s) "
+                f"took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
+            if abs(S_a - target) <= tol:
+                status = "smoothed"
+        else:
+            exception = ((exception + "; ") if exception else "") + (
+                f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f}); "
+                "recording the t reached")
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
                status=status, exception=exception, history=history, remeshes_within=within,
                **_facts(state, device, None if status == "collapsed" else stepper.x))
     clock.lap("record")
     rec["parts"] = parts
     return state, stepper.x
+
+
+def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: float, target: float, tol: float,
+                        history: list, it: int):
+    """Backward-Euler mean-curvature smoothing steps (``M x' = M x + dt L x'``, the implicit baseline of Fig. 7 (f)
+    at ``_FALLBACK_DT``) from the stage's best state while each lowers ``S``, the last one searched back on its chord
+    into the window: for a stage where Eq. (5) stands still or climbs ``S``. Returns ``(stepper, S, evaluations,
+    steps)`` with the smoothed state, or None when the first step does not lower ``S``."""
+    q = dataclasses.replace(p, method="mcf_implicit", mcf_dt=_FALLBACK_DT)
+    smoother = _Stepper(stepper.current(), taus, q, device)
+    x_a = wp.clone(smoother.x)
+    S_best, evaluations, steps = S_a, 0, 0
+    for _ in range(_FALLBACK_STEPS):
+        smoother.step()
+        S = smoother.complexity()
+        evaluations += 1
+        history.append([it + steps + 1, S])
+        if not S < S_best:
+            break
+        steps += 1
+        if S < target - tol:
+            S, found = _search_chord(smoother, x_a, S_best, S, target, tol, history, it + steps - 1, it + steps)
+            return smoother, S, evaluations + found, steps
+        S_best = S
+        wp.copy(x_a, smoother.x)
+        if S <= target + tol:
+            break
+    if steps == 0:
+        return None
+    wp.copy(smoother.x, x_a)
+    return smoother, S_best, evaluations, steps
 
 
 def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, target: float, tol: float,
