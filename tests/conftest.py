@@ -7,6 +7,7 @@ beside the checkout, so a clone without it runs the same tests with fewer parame
 (``python -m pytest -m shared`` runs the extra ones alone).
 """
 
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -116,3 +117,16 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def free_port():
+    """A callable giving a TCP port free on this machine now, for torchrun's rendezvous: a fixed port failed when
+    two suites ran at once."""
+
+    def pick() -> int:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    return pick

@@ -278,7 +278,7 @@ def test_local_edge_length_against_trimesh(shape):
     np.testing.assert_allclose(flow_mod._local_edge_length(shape), total / count, rtol=1e-6)
 
 
-def test_flow_batch_two_processes_split_without_overlap(tmp_path):
+def test_flow_batch_two_processes_split_without_overlap(tmp_path, free_port):
     """`flow-batch` under torchrun with 2 gloo processes gives every mesh to exactly one rank, records the device of
     each, and writes the same stage files, bit for bit, as one process; a re-run skips all."""
     from vnc_warp.cli import main
@@ -287,7 +287,7 @@ def test_flow_batch_two_processes_split_without_overlap(tmp_path):
     src.mkdir()
     for s in range(3):
         random_shape(s, subdivisions=2).save(src / f"shape{s}.obj")
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29571", "-m",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={free_port()}", "-m",
            "vnc_warp.cli", "flow-batch", str(src), str(tmp_path / "out"), "--stages", "1", "--device", "cpu",
            "--no-progress", "--substage-budget", "1"]
     env = dict(os.environ, OMP_NUM_THREADS="1")

@@ -368,7 +368,7 @@ def _listed_stages(folder):
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the torchrun workers through /proc")
-def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes, tmp_path):
+def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes, tmp_path, free_port):
     """Under torchrun (2 gloo ranks) a bad mesh killed its rank and torchrun the other one mid-flow, and nothing
     was recorded before the end; now the bad mesh is recorded and the batch goes on, every finished mesh is in
     batch.json at once, and after a rank is killed (SIGKILL) in the middle of a mesh a re-run finishes everything
@@ -382,7 +382,7 @@ def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes,
         random_shape(10 + k, subdivisions=2).save(src / name)
     shutil.copy(meshes / "fin.obj", src / "zfin.obj")
     out = tmp_path / "out"
-    proc = _torchrun([src, out, "--stages", "3"], 29573)
+    proc = _torchrun([src, out, "--stages", "3"], free_port())
     victim, killed_after = None, None
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
@@ -407,7 +407,7 @@ def test_flow_batch_under_torchrun_survives_bad_meshes_and_a_killed_rank(meshes,
     assert killed_after, "rank 1 finished a mesh and was killed in the middle of the next one"
     before = {name: _listed_stages(out / name) for name in names[:-1]}
     assert 0 < len(before["b1.obj"]) < 4, before["b1.obj"]
-    again = _torchrun([src, out, "--stages", "3"], 29574)
+    again = _torchrun([src, out, "--stages", "3"], free_port())
     stdout, stderr = again.communicate(timeout=300)
     assert again.returncode != 0, "a failed mesh gives exit code 1"
     e = _entries(out)
