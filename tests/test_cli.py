@@ -56,7 +56,8 @@ def test_help_is_plain_and_says_each_default_once():
 def test_flow_warnings_are_log_lines(tmp_path, capsys):
     """A stage that stops at its iteration cap is reported as one log line on stderr
     ("vnc-warp flow: warning: VNC-Flow stage 1: ..."), not a Python warning with its source line; --quiet keeps
-    warnings and drops progress bars."""
+    warnings and drops progress bars. The stage is the last one, so no smoothing fallback runs: its status stays
+    ``max_iters``."""
     mesh = tmp_path / "shape.obj"
     vw.random_shape(1, subdivisions=2).save(mesh)
     rc = cli.main(["flow", str(mesh), "--stages", "1", "--max-iters", "3", "--out", str(tmp_path / "t"), "--device",

@@ -41,8 +41,9 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
   merges) and thereby already took ``S`` below its window records the remeshed state with no flow step
   (status ``remesh``); a stage that stops improving before its target ends ``converged`` with the ``t`` it
-  reached; ``max_iters`` likewise, unless the **smoothing fallback** takes it on: where Eq. (5) stops lowering
-  ``S`` short of the window (it stands still or climbs ``S`` on a fattened dumbbell whose neck became a waist),
+  reached; ``max_iters`` likewise, unless the **smoothing fallback** takes it on (every stage but the last):
+  where Eq. (5) stops lowering ``S`` short of the window (it stands still or climbs ``S`` on a fattened dumbbell
+  whose neck became a waist),
   backward-Euler mean-curvature steps (``_FALLBACK_DT``) from the best state, each kept only while it lowers ``S``
   and the last searched back on its chord, land it (status ``smoothed``, the steps in ``exception``); before, such a
   stage recorded the previous state, and every later stage repeated it. A stalled stage is remeshed from its best
@@ -977,7 +978,10 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             S_a, stepper.mesh, stepper.x = kept
             rec["kept"] = True
     smoothed = None
-    if status in ("max_iters", "converged") and S_a > target + tol and p.method == "vnc" and p.scale_mode == "adaptive":
+    # not the last stage: its target t = 0 is out of reach by design (see its exception), and no later stage can
+    # repeat its state
+    if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
+            and p.scale_mode == "adaptive"):
         smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
         if smoothed is not None:
             stepper, S_a, found, steps = smoothed
