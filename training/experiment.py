@@ -14,7 +14,8 @@ interrupted run continues where it stopped):
    on the same shapes (every stage auto-encoded) for the same wall-clock budget; C-VAE-II on the distilled
    trajectory on top of the frozen VAE encoder. With a budget the step count comes from a measured
    throughput (a short calibration run);
-5. **generation**: meshes at ``times`` (``resolution``^3 marching cubes) from the held-out shapes' stage 0
+5. **generation**: meshes at the measured t of the ground-truth stage nearest each of ``times`` (``resolution``^3
+   marching cubes) from the held-out shapes' stage 0
    (C-VAE-I), from the distilled shape (C-VAE-II, C-VAE-I) and from the latent-interpolation baseline
    (:mod:`vnc_warp.training.baseline`) on the same trajectories;
 6. **evaluation**: CD / EMD / NCE (Tab. 2, :func:`~vnc_warp.training.metrics.evaluate_trajectory`) of every
@@ -346,7 +347,7 @@ def _gpu() -> ExperimentConfig:
     """One H100 or H200, about 25 minutes in five calls of at most ~9 minutes (steps 1, 2, 2, 3, 4: step 2 trains
     two models for 300 s each and is cut by ``max_minutes`` = 8.5 into two calls).
 
-    36 humanoids (5 held out), 16 blobs (1 held out) and 16 real meshes for training, the two real bodies held
+    60 humanoids (5 held out), 16 blobs (1 held out) and 16 real meshes for training, the two real bodies held
     out; every shape flowed by VNC-Flow to 8 stages at 6,000 faces, the distilled body (human_man) to 32.
     Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 300 s of
     training each (their curves still fell at 180 s in the third H200 run), C-VAE-II 330 s; 256^3 marching
@@ -356,7 +357,7 @@ def _gpu() -> ExperimentConfig:
                on_surface=1024, **_RECIPE)
     distill = dict(big, batch=16, queries=16384, on_surface=2048)
     return ExperimentConfig(
-        name="gpu", num_shapes=16, shape_seed=0, subdivisions=4, holdout_shapes=1, num_humanoids=36,
+        name="gpu", num_shapes=16, shape_seed=0, subdivisions=4, holdout_shapes=1, num_humanoids=60,
         holdout_humanoids=5, humanoid_voxel=0.01, train_meshes=_REAL_TRAIN, holdout_meshes=_BODIES,
         distill_mesh="human_man.obj", distill_stages=32,
         real_faces=6000, real_resolution=None, stages=8, max_iters=300, flow_workers=12, flow_budget_s=330.0,
@@ -757,20 +758,39 @@ def _param_count(model: torch.nn.Module) -> dict[str, int]:
             "trainable": sum(p.numel() for p in model.parameters() if p.requires_grad)}
 
 
+def _stage_times(traj_dir: Path, times: tuple[float, ...]) -> list[float]:
+    """The measured t (Eq. (7)) of the ground-truth stage nearest each of ``times``, in the same order.
+
+    Every model is queried at these, not at the nominal ``times``: a prediction is scored against the stage
+    nearest its nominal t, so it is asked for that stage's own t (the last stage's t is above 0, and a query at
+    t = 0 would ask every model for a shape below the end of its training trajectories).
+    """
+    from .data import read_trajectory
+
+    gt_t = np.array([s.t for s in read_trajectory(traj_dir).stages])
+    return [float(gt_t[int(np.argmin(np.abs(gt_t - t)))]) for t in times]
+
+
 def _eval_job(job: dict) -> dict:
-    """Score one prediction folder against its trajectory; module-level for the process pool."""
+    """Score one prediction folder against its trajectory; module-level for the process pool.
+
+    Each scored entry gets ``t_nominal``: the time of ``job["times"]`` it was queried for (:func:`_stage_times`).
+    """
     from .metrics import evaluate_trajectory, read_prediction_dir
 
     preds, _ = read_prediction_dir(job["pred"])
     report = evaluate_trajectory(preds, job["gt"], pred_frame="world", n_points=job["n_points"], n_emd=job["n_emd"],
                                  seed=job["seed"])
+    queried = _stage_times(Path(job["gt"]), tuple(job["times"]))
+    for entry in report["per_t"]:
+        entry["t_nominal"] = [t for t, q in zip(job["times"], queried) if abs(q - entry["t"]) < 1e-9]
     tmp = Path(job["out"] + ".tmp")
     tmp.write_text(json.dumps(report, indent=1))
     os.replace(tmp, job["out"])
     return report
 
 
-def _predicted(folder: Path, times: tuple[float, ...]) -> bool:
+def _predicted(folder: Path, times: list[float]) -> bool:
     listing = folder / "generate.json"
     if not listing.is_file():
         return False
@@ -799,12 +819,13 @@ def _aggregate(reports: dict[str, dict[str, dict]], groups: dict[str, list[str]]
         for method in methods[group]:
             per_t = []
             for t in sorted(times, reverse=True):
-                entries = [next(e for e in reports[method][n]["per_t"] if abs(e["t"] - t) < 1e-9)
+                entries = [next(e for e in reports[method][n]["per_t"] if any(abs(v - t) < 1e-9 for v in e["t_nominal"]))
                            for n in names if n in reports.get(method, {})]
                 ok = [e for e in entries if "error" not in e]
                 row = {"t": t, "n": len(entries), "failed": len(entries) - len(ok), **scores(ok),
                        "largest": scores([e["largest"] for e in ok]), "floor": scores([e["floor"] for e in ok]),
-                       "components": [e.get("components") for e in entries], "t_gt": [e["t_gt"] for e in entries]}
+                       "components": [e.get("components") for e in entries], "t_gt": [e["t_gt"] for e in entries],
+                       "t_queried": [e["t"] for e in entries]}
                 per_t.append(row)
             ok_rows = [r for r in per_t if r["n"] > r["failed"]]
             out[group][method] = {"trajectories": [n for n in names if n in reports.get(method, {})],
@@ -828,16 +849,17 @@ def _montage(path: Path, traj_dir: Path, rows: dict[str, Path], times: tuple[flo
     order = sorted(times, reverse=True)
     gt_t = np.array([s.t for s in traj.stages])
     gt = [traj.load_stage(int(np.argmin(np.abs(gt_t - t)))) for t in order]
+    queried = _stage_times(traj_dir, tuple(order))
     camera = Camera.fit(gt[0], azimuth=30.0, elevation=20.0)
     frames, labels = [], []
-    for m, t in zip(gt, order):
+    for m, t in zip(gt, queried):
         frames.append(render_mesh(m, camera=camera, width=size, height=size, device=device))
-        labels.append(f"GT {gt_t[int(np.argmin(np.abs(gt_t - t)))]:.2f}")
+        labels.append(f"GT {t:.2f}")
     blank = np.full((size, size, 3), 255, dtype=np.uint8)
     for label, folder in rows.items():
         preds, _ = read_prediction_dir(folder)
-        for t in order:
-            mesh = preds.get(t)
+        for t in queried:
+            mesh = preds[min(preds, key=lambda k: abs(k - t))] if preds else None
             frames.append(blank if mesh is None else render_mesh((mesh.vertices, mesh.faces), camera=camera,
                                                                  width=size, height=size, device=device))
             labels.append(f"{label} {t:.2f}")
@@ -1020,8 +1042,9 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     notes.append("latent interp. (VAE): the plain VAE (same backbone and training budget as C-VAE-I) encodes the "
                  "ground-truth stage 0 and LAST stage and decodes their linear blend; it is given the final shape, the "
                  "C-VAEs only stage 0")
-    notes.append("each prediction is scored against the ground-truth stage nearest in t (t = 0 -> the last stage, "
-                 "whose measured t is > 0)")
+    notes.append("each column t is scored against the ground-truth stage nearest in t, and every model is queried "
+                 "at that stage's measured t (t = 0 -> the last stage, whose measured t is > 0; t_queried in "
+                 "results.json)")
     if distill is not None:
         notes.append(f"{distill.name}: C-VAE-II is trained on its trajectory alone"
                      + (" (C-VAE-I and the VAE never saw it)" if distill.role == "holdout" else
@@ -1091,18 +1114,20 @@ def _generate(targets: dict[str, list[_Shape]], models: dict, preds: Path, confi
     from .data import read_trajectory
     from .inference import predict_times
 
-    todo = [(m, s) for m, trajs in targets.items() for s in trajs if not _predicted(preds / m / s.name, config.times)]
-    for k, (method, s) in enumerate(todo):
+    todo = [(m, s, sorted(set(_stage_times(s.traj, config.times)), reverse=True))
+            for m, trajs in targets.items() for s in trajs]
+    todo = [(m, s, q) for m, s, q in todo if not _predicted(preds / m / s.name, q)]
+    for k, (method, s, queried) in enumerate(todo):
         if deadline is not None and time.monotonic() >= deadline:
             return len(todo) - k
         folder = preds / method / s.name
         if method == "baseline":
             model, cfg = models["vae"]
-            latent_interpolation(model, s.traj, config.times, folder, resolution=config.resolution,
+            latent_interpolation(model, s.traj, queried, folder, resolution=config.resolution,
                                  num_surface=cfg.data.num_surface, seed=config.seed)
         else:
             model, cfg = models[method]
-            predict_times(model, read_trajectory(s.traj).load_stage(0), config.times, folder,
+            predict_times(model, read_trajectory(s.traj).load_stage(0), queried, folder,
                           num_surface=cfg.data.num_surface, resolution=config.resolution, seed=config.seed,
                           name=s.name, meta={"method": method})
     return 0
@@ -1123,7 +1148,8 @@ def _evaluate(targets: dict[str, list[_Shape]], holdout: list[_Shape], distill: 
             else:
                 jobs.append((method, s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
                                               "n_points": config.n_points, "n_emd": config.n_emd,
-                                              "seed": config.seed, "out": str(path)}))
+                                              "seed": config.seed, "times": list(config.times),
+                                              "out": str(path)}))
     if config.eval_workers > 1 and len(jobs) > 1:
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=min(config.eval_workers, len(jobs)), mp_context=ctx) as pool:

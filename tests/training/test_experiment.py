@@ -83,6 +83,27 @@ def test_results_hold_both_rows_with_finite_metrics(experiment):
                     "fig9b_cvae1_family0_0002.png", "training.png"]
 
 
+def test_models_are_queried_at_the_scored_stage_t(experiment):
+    """Every model is asked for the shape at the measured t of the ground-truth stage it is scored against
+    (read from the trajectory's manifest), not at the nominal t: the t = 0 column queries the last stage's
+    t > 0, which lies inside the models' training range, and the baseline and the C-VAEs get the same t."""
+    _, root, _, results = experiment
+    for group, rows in results["evaluation"]["groups"].items():
+        names = rows["cvae1"]["trajectories"]
+        for method, row in rows.items():
+            for r in row["per_t"]:
+                assert len(r["t_queried"]) == len(names)
+                for name, queried, t_gt in zip(names, r["t_queried"], r["t_gt"]):
+                    manifest = json.loads((root / "work" / "traj" / name / "manifest.json").read_text())
+                    stage_t = [s["t"] for s in manifest["stages"]]
+                    nearest = min(stage_t, key=lambda v: abs(v - r["t"]))
+                    assert queried == t_gt == nearest, (group, method, name, r["t"])
+                    if r["t"] == 0.0:
+                        assert queried == stage_t[-1] > 0.0
+                    listing = json.loads((root / "work" / "pred" / method / name / "generate.json").read_text())
+                    assert queried in [m["t"] for m in listing["meshes"]]
+
+
 def test_rerun_skips_finished_stages(experiment):
     """A second run on the same work folder trains, predicts and scores nothing again: same steps, same
     scores, and flows and training take a fraction of the first run's time."""
