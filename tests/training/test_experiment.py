@@ -178,8 +178,10 @@ def test_evaluate_command_with_baseline(experiment, tmp_path):
                "--n-emd", str(config.n_emd), "--device", "cpu", "--out", str(out)])
     report = json.loads(out.read_text())
     assert rc == (1 if report["failed"] or report["baseline"]["failed"] else 0)
-    assert [e["t"] for e in report["baseline"]["per_t"]] == [e["t"] for e in report["per_t"]] == sorted(TIMES)[::-1]
     own = results["evaluation"]["per_trajectory"]["baseline"]["family0_0002"]["per_t"]
+    queried = [e["t"] for e in own]  # the experiment asks for the scored stages' own t
+    assert [e["t"] for e in report["baseline"]["per_t"]] == [e["t"] for e in report["per_t"]] == queried
+    assert len(queried) == len(TIMES) and queried != sorted(TIMES)[::-1]
     for mine, theirs in zip(report["baseline"]["per_t"], own):
         assert mine.get("cd_x1e4") == pytest.approx(theirs.get("cd_x1e4"), rel=1e-9)
 
