@@ -30,9 +30,9 @@ vec16 = wp.types.vector(length=16, dtype=wp.float32)
 
 
 @functools.cache
-def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = False):
-    """The VNC-soft traversal with ``qb`` queries per thread (compiled once per variant): the sums of Eq. (3)
-    (``grad=False``), or their adjoint with respect to the query vertex (``grad=True``), over the same pairs.
+def soft_cells_kernel(qb: int, cull: bool, moving: bool = False, moments: bool = False):
+    """The VNC-soft traversal with ``qb`` queries per thread (compiled once per variant): the sums of Eq. (3), and
+    with ``moments`` the first moments that the adjoint with respect to the query vertex reads, over the same pairs.
 
     ``cull``: with one query per thread, each row reads only the cells some ball of the warp reaches
     (:func:`kernels.vnc_grid.walk_span`; on CUDA, where it pays). ``moving``: the grid may have been made for earlier
@@ -44,6 +44,7 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
     each thread's first query.
     """
     vq = wp.types.vector(length=qb, dtype=wp.float32)
+    vq3 = wp.types.vector(length=3 * qb, dtype=wp.float32)
 
     @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
     def soft_cells(
@@ -62,25 +63,23 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
         pad: float,
         pos: wp.array(dtype=wp.vec4),
         val: wp.array(dtype=wp.vec4),
-        num: wp.array(dtype=float),
-        den: wp.array(dtype=float),
-        nsum: wp.array(dtype=wp.vec3),
-        H_grad: wp.array(dtype=float),
-        n_grad: wp.array(dtype=wp.vec3),
         part_num: wp.array2d(dtype=float),
         part_den: wp.array2d(dtype=float),
         part_v: wp.array2d(dtype=wp.vec3),
+        part_t: wp.array2d(dtype=wp.vec3),
     ):
         """VNC-soft, Eq. (3), cut off at ``r = kappa sigma = tau``: partial sums of split ``s`` for the ``qb``
         consecutive sorted queries ``qb u .. qb u + qb - 1`` of thread ``u``: ``(N, D, S)`` into ``part_num``,
-        ``part_den``, ``part_v``; with ``grad``, from the forward sums ``num``, ``den``, ``nsum`` and the upstream
-        ``H_grad``, ``n_grad``, the gradient ``sum_j dL/dc_kj dw_kj/dx_k L_j`` into ``part_v`` (``c = w L``).
+        ``part_den``, ``part_v``; with ``moments``, also ``T_c = sum_j w_kj (x_k - m_j) v_jc`` of the five record
+        values ``v_j = (L_j alpha_j delta_j, L_j, L_j n_j)`` into rows ``5 s + c`` of ``part_t``
+        (:func:`vertex_gradient` turns them into the query's gradient once the upstream gradients are known, so
+        the backward pass evaluates no weight of a pair a second time).
 
         Every source record read (two 16-byte loads) serves ``qb`` queries held in registers. With the Gaussian
         factor ``f`` of each query (:func:`kernels.vnc_terms.gaussian_factor`) the cut-off ``|p - m| <= tau`` is
-        ``f |p - m|^2 >= gaussian_cutoff(kappa)`` for every query: a pair costs its offset and square, one multiply and one compare,
-        and within the cut-off one ``exp2`` and five multiply-adds (eight for the gradient). Groups hold ``qb x 32``
-        queries on CUDA.
+        ``f |p - m|^2 >= gaussian_cutoff(kappa)`` for every query: a pair costs its offset and square, one multiply
+        and one compare, and within the cut-off one ``exp2`` and five multiply-adds (three multiplies and fifteen
+        more for the moments). Groups hold ``qb x 32`` queries on CUDA.
         """
         s, u = wp.tid()
         t0 = u * qb
@@ -95,11 +94,6 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
         py = vq()
         pz = vq()
         gq = vq()
-        cN = vq()
-        cD = vq()
-        cx = vq()
-        cy = vq()
-        cz = vq()
         tlo = wp.vec3(1.0e30)
         thi = wp.vec3(-1.0e30)
         for q in range(qb):
@@ -115,13 +109,6 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
                 py[q] = p[1]
                 pz[q] = p[2]
                 gq[q] = gaussian_factor(r, kappa)
-                if wp.static(grad):
-                    gN, gD, gS = adjoint_coefficients(num[k], den[k], nsum[k], H_grad[k], n_grad[k])
-                    cN[q] = gN
-                    cD[q] = gD
-                    cx[q] = gS[0]
-                    cy[q] = gS[1]
-                    cz[q] = gS[2]
                 e = wp.vec3(r + pad)
                 tlo = wp.min(tlo, p - e)
                 thi = wp.max(thi, p + e)
@@ -135,6 +122,12 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
         ax = vq()
         ay = vq()
         az = vq()
+        # the moments: (x, y, z) of value c at 3 q .. 3 q + 2 of tc
+        t0m = vq3()
+        t1m = vq3()
+        t2m = vq3()
+        t3m = vq3()
+        t4m = vq3()
         nrows = box_rows(lo, hi)
         steps = row_walk(nrows, s, ns)
         held = wp.vec2i(0, 0)
@@ -154,27 +147,41 @@ def soft_cells_kernel(qb: int, cull: bool, grad: bool = False, moving: bool = Fa
                     d2 = dx * dx + dy * dy + dz * dz
                     if d2 * gq[q] >= emin:
                         w = gaussian_weight(d2, gq[q])
-                        if wp.static(grad):
-                            # dL/dc of the pair (kernels.vnc_terms.adjoint_coefficients) times w: the gradient
-                            # sum_j c'_kj dw_kj / dx_k is 2 ln2 f sum_j c'_kj w_kj (x_k - m_j), f applied once below
-                            c = w * (cN[q] * ev[0] + cD[q] * ep[3] + cx[q] * ev[1] + cy[q] * ev[2] + cz[q] * ev[3])
-                            ax[q] += c * dx
-                            ay[q] += c * dy
-                            az[q] += c * dz
-                        else:
-                            an[q] += w * ev[0]
-                            ad[q] += w * ep[3]
-                            ax[q] += w * ev[1]
-                            ay[q] += w * ev[2]
-                            az[q] += w * ev[3]
+                        an[q] += w * ev[0]
+                        ad[q] += w * ep[3]
+                        ax[q] += w * ev[1]
+                        ay[q] += w * ev[2]
+                        az[q] += w * ev[3]
+                        if wp.static(moments):
+                            wx = w * dx
+                            wy = w * dy
+                            wz = w * dz
+                            t0m[3 * q] += wx * ev[0]
+                            t0m[3 * q + 1] += wy * ev[0]
+                            t0m[3 * q + 2] += wz * ev[0]
+                            t1m[3 * q] += wx * ep[3]
+                            t1m[3 * q + 1] += wy * ep[3]
+                            t1m[3 * q + 2] += wz * ep[3]
+                            t2m[3 * q] += wx * ev[1]
+                            t2m[3 * q + 1] += wy * ev[1]
+                            t2m[3 * q + 2] += wz * ev[1]
+                            t3m[3 * q] += wx * ev[2]
+                            t3m[3 * q + 1] += wy * ev[2]
+                            t3m[3 * q + 2] += wz * ev[2]
+                            t4m[3 * q] += wx * ev[3]
+                            t4m[3 * q + 1] += wy * ev[3]
+                            t4m[3 * q + 2] += wz * ev[3]
         for q in range(qb):
             if t0 + q < count:
-                if wp.static(grad):
-                    part_v[s, t0 + q] = (2.0 * LN2 * gq[q]) * wp.vec3(ax[q], ay[q], az[q])
-                else:
-                    part_num[s, t0 + q] = an[q]
-                    part_den[s, t0 + q] = ad[q]
-                    part_v[s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
+                part_num[s, t0 + q] = an[q]
+                part_den[s, t0 + q] = ad[q]
+                part_v[s, t0 + q] = wp.vec3(ax[q], ay[q], az[q])
+                if wp.static(moments):
+                    part_t[5 * s, t0 + q] = wp.vec3(t0m[3 * q], t0m[3 * q + 1], t0m[3 * q + 2])
+                    part_t[5 * s + 1, t0 + q] = wp.vec3(t1m[3 * q], t1m[3 * q + 1], t1m[3 * q + 2])
+                    part_t[5 * s + 2, t0 + q] = wp.vec3(t2m[3 * q], t2m[3 * q + 1], t2m[3 * q + 2])
+                    part_t[5 * s + 3, t0 + q] = wp.vec3(t3m[3 * q], t3m[3 * q + 1], t3m[3 * q + 2])
+                    part_t[5 * s + 4, t0 + q] = wp.vec3(t4m[3 * q], t4m[3 * q + 1], t4m[3 * q + 2])
 
     return soft_cells
 
@@ -409,15 +416,51 @@ def add_vec3(src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=wp.vec3)):
 
 
 @wp.kernel(enable_backward=False)
+def reduce_moments(order: wp.array(dtype=int), part_t: wp.array2d(dtype=wp.vec3), moments: wp.array2d(dtype=wp.vec3)):
+    """``moments[c, order[t]] = sum_s part_t[5 s + c, t]`` (fixed order): the first moments of
+    :func:`soft_cells_kernel` per query vertex, ``c`` in ``0..4``."""
+    c, t = wp.tid()
+    acc = wp.vec3(0.0)
+    for s in range(part_t.shape[0] // 5):
+        acc += part_t[5 * s + c, t]
+    moments[c, order[t]] = acc
+
+
+@wp.kernel(enable_backward=False)
+def vertex_gradient(
+    tau: wp.array(dtype=float),
+    kappa: float,
+    num: wp.array(dtype=float),
+    den: wp.array(dtype=float),
+    nsum: wp.array(dtype=wp.vec3),
+    moments: wp.array2d(dtype=wp.vec3),
+    H_grad: wp.array(dtype=float),
+    n_grad: wp.array(dtype=wp.vec3),
+    x_grad: wp.array(dtype=wp.vec3),
+):
+    """The adjoint of VNC-soft (Eq. (3)) with respect to the query vertex ``x_k`` through its own weights:
+    ``sum_j dL/dc_kj dw_kj/dx_k L_j = 2 ln2 f_k (gN T_0 + gD T_1 + gS . (T_2, T_3, T_4))`` (``c = w L``; the
+    coefficients of :func:`kernels.vnc_terms.adjoint_coefficients`, the moments ``T`` of :func:`soft_cells_kernel`,
+    :func:`kernels.vnc_terms.gaussian_gradient`), added to ``x_grad``."""
+    k = wp.tid()
+    gN, gD, gS = adjoint_coefficients(num[k], den[k], nsum[k], H_grad[k], n_grad[k])
+    g = (gN * moments[0, k] + gD * moments[1, k] + gS[0] * moments[2, k] + gS[1] * moments[3, k]
+         + gS[2] * moments[4, k])
+    x_grad[k] = x_grad[k] + (2.0 * LN2 * gaussian_factor(tau[k], kappa)) * g
+
+
+@wp.kernel(enable_backward=False)
 def pack_soft_state(
     H: wp.array(dtype=float),
     n: wp.array(dtype=wp.vec3),
     num: wp.array(dtype=float),
     den: wp.array(dtype=float),
     nsum: wp.array(dtype=wp.vec3),
+    moments: wp.array2d(dtype=wp.vec3),
     out: wp.array2d(dtype=float),
 ):
-    """One row of 9 per vertex: ``(H, n, N, D, S)`` (the torch op's outputs and the sums its backward pass reads)."""
+    """One row per vertex: ``(H, n, N, D, S)`` (the torch op's outputs and the sums its backward pass reads), then,
+    in a row of 24, the 15 moments of :func:`reduce_moments`."""
     k = wp.tid()
     v = n[k]
     s = nsum[k]
@@ -430,6 +473,12 @@ def pack_soft_state(
     out[k, 6] = s[0]
     out[k, 7] = s[1]
     out[k, 8] = s[2]
+    if out.shape[1] > 9:
+        for c in range(5):
+            m = moments[c, k]
+            out[k, 9 + 3 * c] = m[0]
+            out[k, 10 + 3 * c] = m[1]
+            out[k, 11 + 3 * c] = m[2]
 
 
 @wp.kernel(enable_backward=False)
@@ -439,14 +488,18 @@ def unpack_soft_state(
     num: wp.array(dtype=float),
     den: wp.array(dtype=float),
     nsum: wp.array(dtype=wp.vec3),
+    moments: wp.array2d(dtype=wp.vec3),
     H_grad: wp.array(dtype=float),
     n_grad: wp.array(dtype=wp.vec3),
 ):
-    """The sums of a :func:`pack_soft_state` row and the upstream gradients ``(dL/dH, dL/dn)`` of a row of 4."""
+    """The sums and moments of a :func:`pack_soft_state` row of 24 and the upstream gradients ``(dL/dH, dL/dn)`` of a
+    row of 4."""
     k = wp.tid()
     num[k] = state[k, 4]
     den[k] = state[k, 5]
     nsum[k] = wp.vec3(state[k, 6], state[k, 7], state[k, 8])
+    for c in range(5):
+        moments[c, k] = wp.vec3(state[k, 9 + 3 * c], state[k, 10 + 3 * c], state[k, 11 + 3 * c])
     H_grad[k] = grads[k, 0]
     n_grad[k] = wp.vec3(grads[k, 1], grads[k, 2], grads[k, 3])
 
@@ -503,10 +556,11 @@ def pack_vertex_adjoints(
 
 
 @functools.cache
-def soft_edge_adjoint_kernel(cull: bool, moving: bool = False):
+def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
     """The adjoint of VNC-soft (Eq. (3)) with respect to the edge quantities (compiled once per variant), gathered per
-    edge over the vertices whose ball reaches it: the same walk as :func:`soft_cells_kernel` with one query (an
-    edge) per thread, ``cull`` and ``moving`` as there."""
+    edge over the vertices whose ball reaches it: the same walk as :func:`soft_cells_kernel`, ``qb`` edges per thread
+    (every vertex record read serves them all), ``cull`` and ``moving`` as there."""
+    vq = wp.types.vector(length=qb, dtype=wp.float32)
 
     @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
     def soft_edge_adjoint(
@@ -534,66 +588,94 @@ def soft_edge_adjoint_kernel(cull: bool, moving: bool = False):
         part_m: wp.array2d(dtype=wp.vec3),
     ):
         """Split ``s`` of the sums over the vertices (the sources, each within its own cut-off ``f_k d^2 >=
-        gaussian_cutoff``; an edge's ball is the largest radius ``reach[j]`` of them, plus ``pad``) of edge
-        ``j = order[t]``: ``A = sum gN w``,
-        ``B = sum gD w``, ``C = sum gS w`` and ``M = sum f w (gN alpha + gD + gS . n_j) (x_k - m_j)``;
-        :func:`reduce_edge_grads` turns them into gradients."""
-        s, t = wp.tid()
-        g = t // size
-        # the threads past the last edge of a group that walks a shared box walk it too (walk_span)
-        shared = box_lo[g][0] >= 0
-        if t >= count and not shared:
+        gaussian_cutoff``; an edge's ball is the largest radius ``reach[j]`` of them, plus ``pad``) of the ``qb``
+        consecutive sorted edges ``j = order[qb u + q]`` of thread ``u``: ``A = sum gN w``, ``B = sum gD w``,
+        ``C = sum gS w`` and ``M = sum f w (gN alpha + gD + gS . n_j) (x_k - m_j)``; :func:`reduce_edge_grads` turns
+        them into gradients."""
+        s, u = wp.tid()
+        t0 = u * qb
+        g = t0 // size
+        # one edge per thread: the threads past the last edge of a group that walks a shared box walk it too
+        # (walk_span)
+        shared = wp.static(qb == 1) and box_lo[g][0] >= 0
+        if t0 >= count and not shared:
             return
-        m = wp.vec3(FAR)
-        a = float(0.0)
-        u = wp.vec3(0.0)
+        mx = vq()
+        my = vq()
+        mz = vq()
+        ea = vq()
+        ux = vq()
+        uy = vq()
+        uz = vq()
         tlo = wp.vec3(1.0e30)
         thi = wp.vec3(-1.0e30)
-        if t < count:
-            j = order[t]
-            m = mid[j]
-            a = angle[j]
-            u = enormal[j]
-            e = wp.vec3(reach[j] + pad)
-            tlo = m - e
-            thi = m + e
+        for q in range(qb):
+            mx[q] = FAR  # an empty slot: far from every source
+            my[q] = FAR
+            mz[q] = FAR
+            if t0 + q < count:
+                j = order[t0 + q]
+                m = mid[j]
+                n = enormal[j]
+                mx[q] = m[0]
+                my[q] = m[1]
+                mz[q] = m[2]
+                ea[q] = angle[j]
+                ux[q] = n[0]
+                uy[q] = n[1]
+                uz[q] = n[2]
+                e = wp.vec3(reach[j] + pad)
+                tlo = wp.min(tlo, m - e)
+                thi = wp.max(thi, m + e)
         emin = gaussian_cutoff(kappa)
         lo, hi = thread_span_box(g, tlo, thi, box_lo, box_hi, origin, inv_h, dims)
         ball = thread_ball(tlo, thi, origin, inv_h)
         if wp.static(moving):
             ball = clamp_ball(ball, dims)
         ns = part_a.shape[0]
-        A = float(0.0)
-        B = float(0.0)
-        C = wp.vec3(0.0)
-        M = wp.vec3(0.0)
+        A = vq()
+        B = vq()
+        Cx = vq()
+        Cy = vq()
+        Cz = vq()
+        Mx = vq()
+        My = vq()
+        Mz = vq()
         nrows = box_rows(lo, hi)
         steps = row_walk(nrows, s, ns)
         held = wp.vec2i(0, 0)
         walked = int(0)
         for row in range(steps[0], nrows, steps[1]):
             whole, held = walk_span(walked, row, steps[1], nrows, shared, held, lo, hi, dims, first,
-                                    wp.static(cull), ball)
+                                    wp.static(qb == 1 and cull), ball)
             walked += 1
             span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
                 vp = load4(pos, i)
-                d = wp.vec3(vp[0], vp[1], vp[2]) - m
-                d2 = wp.dot(d, d)
-                if d2 * vp[3] >= emin:
-                    w = gaussian_weight(d2, vp[3])
-                    vc = load4(coef, i)
-                    g4 = load4(gs, i)
-                    gsv = wp.vec3(g4[0], g4[1], g4[2])
-                    A += vc[0] * w
-                    B += vc[1] * w
-                    C += w * gsv
-                    M += (vp[3] * w * (vc[0] * a + vc[1] + wp.dot(gsv, u))) * d
-        if t < count:
-            part_a[s, t] = A
-            part_b[s, t] = B
-            part_c[s, t] = C
-            part_m[s, t] = M
+                for q in range(qb):
+                    dx = vp[0] - mx[q]
+                    dy = vp[1] - my[q]
+                    dz = vp[2] - mz[q]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 * vp[3] >= emin:
+                        w = gaussian_weight(d2, vp[3])
+                        vc = load4(coef, i)
+                        g4 = load4(gs, i)
+                        A[q] += vc[0] * w
+                        B[q] += vc[1] * w
+                        Cx[q] += g4[0] * w
+                        Cy[q] += g4[1] * w
+                        Cz[q] += g4[2] * w
+                        c = vp[3] * w * (vc[0] * ea[q] + vc[1] + g4[0] * ux[q] + g4[1] * uy[q] + g4[2] * uz[q])
+                        Mx[q] += c * dx
+                        My[q] += c * dy
+                        Mz[q] += c * dz
+        for q in range(qb):
+            if t0 + q < count:
+                part_a[s, t0 + q] = A[q]
+                part_b[s, t0 + q] = B[q]
+                part_c[s, t0 + q] = wp.vec3(Cx[q], Cy[q], Cz[q])
+                part_m[s, t0 + q] = wp.vec3(Mx[q], My[q], Mz[q])
 
     return soft_edge_adjoint
 

@@ -267,6 +267,45 @@ def test_torch_op_replays_and_interleaves(device):
     same(vb.grad, plain[3])
 
 
+def test_torch_gradient_backward_twice_and_after_a_forward_without_gradient():
+    """The backward pass reads the moments its forward pass left (on the device while no other VNC-soft call ran
+    since, else from the op's saved state): a backward pass run twice (``retain_graph``) adds the same gradient
+    twice, and a forward pass under ``torch.no_grad`` at other positions (which leaves no moments) between a replayed
+    forward pass and its backward pass changes nothing: on the CPU both equal a call run as usual, bit for bit."""
+    mesh = _mesh(3)
+    V = mesh.num_vertices
+    wH, wn = (w.to(torch.float32) for w in _objective_weights(V, 4))
+    replay = Tuning(replay=("cpu", "cuda"))
+    base = torch.tensor(mesh.vertices, dtype=torch.float32)
+
+    def loss_of(v, tuning):
+        H, n = vnc_soft(v, mesh, 0.6, tuning=tuning)
+        return (H * wH).sum() + (n * wn).sum()
+
+    plain = []
+    for k in range(5):
+        v = (base * (1.0 + 0.01 * k)).requires_grad_(True)
+        loss_of(v, Tuning(replay=())).backward()
+        plain.append(v.grad.clone())
+    for k in range(5):  # graphs captured from the third call on
+        v = (base * (1.0 + 0.01 * k)).requires_grad_(True)
+        loss = loss_of(v, replay)
+        loss.backward(retain_graph=True)
+        torch.testing.assert_close(v.grad, plain[k], rtol=0, atol=0)
+        loss.backward()
+        torch.testing.assert_close(v.grad, 2 * plain[k], rtol=0, atol=0)
+    for k in range(5):
+        v = (base * (1.0 + 0.01 * k)).requires_grad_(True)
+        loss = loss_of(v, replay)
+        with torch.no_grad():
+            H, _ = vnc_soft(base * 1.07, mesh, 0.6, tuning=replay)
+        loss.backward()
+        torch.testing.assert_close(v.grad, plain[k], rtol=0, atol=0)
+    assert len(vw.engine(mesh, "cpu", tuning=replay).graphs()) == 4  # forward with and without moments, 2 backwards
+    H_plain, _ = vnc_soft(base * 1.07, mesh, 0.6, tuning=Tuning(replay=()))
+    torch.testing.assert_close(H, H_plain, rtol=0, atol=0)
+
+
 def test_torch_gradient_as_positions_and_scales_change(device):
     """The torch op's plan outlives its positions and per-vertex scales (a flow's iterations): calls at moved
     positions, and with a few scales grown threefold (the largest radius past the plan's, the mean within its
@@ -319,19 +358,21 @@ def test_torch_gradient_after_a_plain_call_of_the_same_plan(device):
     assert np.abs(g - g64).max() < 1e-5 * np.abs(g64).max(), np.abs(g - g64).max() / np.abs(g64).max()
 
 
+@pytest.mark.parametrize("per_thread", [1, 4])
 @pytest.mark.parametrize("per_vertex", [False, True])
 @pytest.mark.parametrize("op", ["soft", "hard"])
-def test_torch_gradient_with_the_cuda_launch_shape(op, per_vertex):
+def test_torch_gradient_with_the_cuda_launch_shape(op, per_vertex, per_thread):
     """On the CPU with CUDA's launch shape (the culled row walk, warp-sized groups sharing boxes, rows split over
-    threads; graph replay), the torch ops' gradients (VNC-soft's edge adjoint walks the culled rows too) equal the
-    float64 dense references' to 1e-5 of their largest entry, at moved positions too."""
+    threads, one or four queries per thread as in a busy traversal; graph replay), the torch ops' gradients
+    (VNC-soft's edge adjoint walks the culled rows too, one or four edges per thread) equal the float64 dense
+    references' to 1e-5 of their largest entry, at moved positions too."""
     torch_op, dense = (vnc_soft, dense_soft) if op == "soft" else (vnc_hard, dense_hard)
     mesh = _mesh(7)
     V = mesh.num_vertices
     wH, wn = _objective_weights(V, 11)
     rng = np.random.default_rng(12)
     tau = 0.6 * (rng.uniform(0.6, 1.4, V) if per_vertex else 1.0)
-    shape = Tuning(replay=("cpu", "cuda"), cull_cpu=True, group=32, splits=3, per_thread=1)
+    shape = Tuning(replay=("cpu", "cuda"), cull_cpu=True, group=32, splits=3, per_thread=per_thread)
     for k in range(4):
         x0 = mesh.vertices.astype(np.float64) * (1.0 + 0.01 * k)
         v = torch.tensor(x0, dtype=torch.float32, requires_grad=True)

@@ -279,10 +279,10 @@ class Engine:
             return outs, fresh
         return outs if fresh else [wp.clone(o) for o in outs]
 
-    def _unused2d(self) -> wp.array:
-        """An empty float32 2d array for a kernel argument a variant does not read."""
+    def _unused_vec3(self) -> wp.array:
+        """An empty vec3 2d array for a kernel argument a variant does not read."""
         if self._unused is None:
-            self._unused = wp.empty((0, 0), dtype=wp.float32, device=self.device)
+            self._unused = wp.empty((0, 0), dtype=wp.vec3, device=self.device)
         return self._unused
 
     def sorted_lengths(self) -> np.ndarray:
@@ -434,11 +434,12 @@ class Engine:
                                     self.tuning)
         return bounds_of
 
-    def _soft_moving(self, x: wp.array | _Moving, tau, kappa: float, strategy: str, packed: bool = False, *,
+    def _soft_moving(self, x: wp.array | _Moving, tau, kappa: float, strategy: str, packed: int = 0, *,
                      copy: bool = True) -> list | tuple[list, bool]:
-        """VNC-soft at positions ``x`` on the device through a plan: ``[H, n]``, or (``packed``) one (V, 9) array of
-        ``(H, n, N, D, S)`` per vertex (the torch op's outputs and what its backward pass reads). ``x`` may be the
-        plan itself (:meth:`soft_plan`), its positions written by the caller; ``copy``: as for :meth:`_call`."""
+        """VNC-soft at positions ``x`` on the device through a plan: ``[H, n]``, or (``packed``: 9 or 24) one
+        (V, packed) array of ``(H, n, N, D, S)`` per vertex (the torch op's outputs and what its backward pass reads),
+        and in a row of 24 the moments of the vertex adjoint (:func:`kernels.vnc_sums.reduce_moments`). ``x`` may be
+        the plan itself (:meth:`soft_plan`), its positions written by the caller; ``copy``: as for :meth:`_call`."""
         t = host_scalar(tau, "tau")
         if isinstance(x, _Moving):
             plan = x
@@ -448,22 +449,23 @@ class Engine:
 
         def run(pool, fresh):
             outputs, f, _, prep = self._soft(plan.x, plan.tau if t is None else t, kappa, plan.strategy, pool, fresh,
-                                             bounds=plan.bounds)
+                                             bounds=plan.bounds, moments=packed > 9)
             plan.measure(plan.tau, copy_out=not fresh)
             if not packed:
                 return outputs[3:]
             # only the torch op's (packed) calls leave what a backward pass reuses: a replayed call runs none of this,
             # so what an unpacked call of the same plan prepared must not stand in for it
-            plan.prep = (f, prep, outputs[:3])
-            out = _plan.empty(None if fresh else pool, self.device, (self.num_vertices, 9), wp.float32)
-            wp.launch(_s.pack_soft_state, dim=self.num_vertices, inputs=[outputs[3], outputs[4], *outputs[:3]],
+            plan.prep = (f, prep, outputs[:3]) if packed > 9 else None
+            out = _plan.empty(None if fresh else pool, self.device, (self.num_vertices, packed), wp.float32)
+            wp.launch(_s.pack_soft_state, dim=self.num_vertices,
+                      inputs=[outputs[3], outputs[4], *outputs[:3], prep[-1] if packed > 9 else self._unused_vec3()],
                       outputs=[out], device=self.device)
             return [out]
 
         self._soft_token = None
         outs, fresh = self._call(("soft-x", plan, packed), "soft", run, copy=False)
         plan.fetch(copied=not fresh)
-        self._soft_token = plan.token = object() if packed else None
+        self._soft_token = plan.token = object() if packed > 9 else None
         if copy:
             return outs if fresh else [wp.clone(o) for o in outs]
         return outs, fresh
@@ -473,12 +475,14 @@ class Engine:
         return ("soft", strategy, kappa, "array" if t is None else t)
 
     def _soft(self, x: wp.array, tau, kappa: float, strategy: str, pool: _plan.Pool | None, fresh: bool, *,
-              bounds: _plan.Bounds | None = None):
+              bounds: _plan.Bounds | None = None, moments: bool = False):
         """The launches of one VNC-soft call: ``([num, den, nsum, H, n], edge fields, backward closure, traversal)``,
-        the traversal ``(tau, cells, groups, edge records)`` (None for the BVH).
+        the traversal ``(tau, cells, groups, edge records, moments)`` (None for the BVH).
 
         ``pool``: scratch (None: new arrays, kept by the backward closure); ``fresh``: ``H`` and ``n`` are new arrays
-        (else from ``pool``: a captured call's outputs); ``bounds``: a plan's (else from the host or the device)."""
+        (else from ``pool``: a captured call's outputs); ``bounds``: a plan's (else from the host or the device);
+        ``moments`` (implied by positions that require gradients): also the (5, V) moments the vertex adjoint reads
+        (:func:`kernels.vnc_sums.reduce_moments`; the grid and dense traversals)."""
         device = self.device
         V = self.num_vertices
         rg = x.requires_grad
@@ -496,7 +500,8 @@ class Engine:
             return outputs, f, self._soft_bvh(x, tau_arr, kappa, f, outputs), None
         b = bounds or self.host_bounds(x, radius_stats(tau)) or _plan.bounds(x, tau_arr)
         concrete = _plan.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0], self.tuning)
-        backward, prep = self._soft_cells(x, tau_arr, kappa, f, outputs, b, concrete, pool, bounds is not None)
+        backward, prep = self._soft_cells(x, tau_arr, kappa, f, outputs, b, concrete, pool, bounds is not None,
+                                          moments or rg)
         return outputs, f, backward, (tau_arr, *prep)
 
     def _midpoint_bvh(self, f: EdgeFields) -> wp.Bvh:
@@ -546,58 +551,66 @@ class Engine:
                   outputs=[pos, val], device=device, record_tape=False)
         return cells, groups, pos, val
 
-    def _soft_cells(self, x, tau_arr, kappa, f, outputs, b, strategy, pool, moving: bool):
-        """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered).
-        ``moving``: ``b`` are a plan's bounds, made for earlier positions (the kernels then clamp to its grid)."""
+    def _soft_cells(self, x, tau_arr, kappa, f, outputs, b, strategy, pool, moving: bool, moments: bool):
+        """VNC-soft through the grid or dense traversal; returns the backward closure (same pairs, gathered) and the
+        traversal ``(cells, groups, edge records, moments)``. ``moving``: ``b`` are a plan's bounds, made for earlier
+        positions (the kernels then clamp to its grid); ``moments``: also the (5, V) moments of the vertex adjoint
+        (else None)."""
         device = self.device
+        V = x.shape[0]
         cells, groups, pos, val = self._soft_prepare(x, tau_arr, f, b, strategy, pool)
         shape = (groups.splits, groups.padded)
         parts = [_plan.empty(pool, device, shape, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
+        if moments:
+            parts.append(_plan.empty(pool, device, (5 * groups.splits, groups.padded), wp.vec3))
+            mom = _plan.empty(pool, device, (5, V), wp.vec3)
+        else:
+            parts.append(self._unused_vec3())
+            mom = None
         num, den, nsum, H, n = outputs
-        kernel = _s.soft_cells_kernel(groups.per_thread, self.tuning.cull_on(device.is_cuda), moving=moving)
-        wp.launch(kernel, dim=groups.dim,
-                  inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val, num, den, nsum, H, n],
+        kernel = _s.soft_cells_kernel(groups.per_thread, self.tuning.cull_on(device.is_cuda), moving=moving,
+                                      moments=moments)
+        wp.launch(kernel, dim=groups.dim, inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val],
                   outputs=parts, device=device, record_tape=False, block_dim=self.tuning.block_dim)
-        wp.launch(_s.reduce_sums, dim=x.shape[0], inputs=[groups.order, *parts], outputs=outputs, device=device,
+        wp.launch(_s.reduce_sums, dim=V, inputs=[groups.order, *parts[:3]], outputs=outputs, device=device,
                   record_tape=False)
+        if moments:
+            wp.launch(_s.reduce_moments, dim=(5, V), inputs=[groups.order, parts[3]], outputs=[mom], device=device,
+                      record_tape=False)
 
         def backward():
-            self._soft_adjoint(x, tau_arr, kappa, f, cells, groups, pos, val, num, den, nsum, H.grad, n.grad, x.grad,
+            self._soft_adjoint(x, tau_arr, kappa, f, mom, num, den, nsum, H.grad, n.grad, x.grad,
                                [f.mid.grad, f.length.grad, f.angle.grad, f.normal.grad], b, strategy, None, moving)
 
-        return backward, (cells, groups, pos, val)
+        return backward, (cells, groups, pos, val, mom)
 
-    def _soft_adjoint(self, x, tau_arr, kappa, f, cells, groups, pos, val, num, den, nsum, H_grad, n_grad, x_grad,
-                      edge_grads, b, strategy, pool, moving: bool) -> None:
-        """The adjoint of the grid (or dense) VNC-soft over the forward's pairs: ``x_grad`` += the vertices' part
-        (:func:`kernels.vnc_sums.soft_cells_kernel` with ``grad``), ``edge_grads`` (mid, length, angle, normal) += the
-        edges' (:func:`kernels.vnc_sums.soft_edge_adjoint_kernel`, a gather per edge over the vertices that reach
-        it)."""
+    def _soft_adjoint(self, x, tau_arr, kappa, f, moments, num, den, nsum, H_grad, n_grad, x_grad, edge_grads, b,
+                      strategy, pool, moving: bool) -> None:
+        """The adjoint of the grid (or dense) VNC-soft over the forward's pairs: ``x_grad`` += the vertices' part from
+        the forward's ``moments`` in one pass over the vertices (:func:`kernels.vnc_sums.vertex_gradient`),
+        ``edge_grads`` (mid, length, angle, normal) += the edges' (:func:`kernels.vnc_sums.soft_edge_adjoint_kernel`,
+        a gather per edge over the vertices that reach it)."""
         device = self.device
         t = self.tuning
         V, E = x.shape[0], f.mid.shape[0]
-        gx = _plan.empty(pool, device, (groups.splits, groups.padded), wp.vec3)
-        unused = self._unused2d()
-        kernel = _s.soft_cells_kernel(groups.per_thread, t.cull_on(device.is_cuda), grad=True, moving=moving)
-        wp.launch(kernel, dim=groups.dim,
-                  inputs=[x, tau_arr, kappa, *groups.args(cells), pos, val, num, den, nsum, H_grad, n_grad],
-                  outputs=[unused, unused, gx], device=device, record_tape=False, block_dim=t.block_dim)
-        wp.launch(_s.reduce_add_vec3, dim=V, inputs=[groups.order, gx], outputs=[x_grad], device=device,
-                  record_tape=False)
+        wp.launch(_s.vertex_gradient, dim=V, inputs=[tau_arr, kappa, num, den, nsum, moments, H_grad, n_grad],
+                  outputs=[x_grad], device=device, record_tape=False)
         # edges gather over the vertices whose ball (radius tau_k) reaches their midpoint: each edge's reach is the
         # largest radius, taken on the device (a plan's bounds may be older than the radii)
         top = _plan.zeros(pool, device, 1, wp.float32)
         wp.launch(_s.largest, dim=V, inputs=[tau_arr], outputs=[top], device=device, record_tape=False)
         reach = _plan.empty(pool, device, E, wp.float32)
         wp.launch(_s.broadcast, dim=E, inputs=[top], outputs=[reach], device=device, record_tape=False)
-        vcells, egroups = _plan.plan(f.mid, reach, x, b, strategy, b.rmax, t, orders=self._edge_orders, pool=pool)
+        vcells, egroups = _plan.plan(f.mid, reach, x, b, strategy, b.rmax, t, max_per_thread=t.qb,
+                                     orders=self._edge_orders, pool=pool)
         vpos, vcoef, vgs = (_plan.empty(pool, device, V, wp.vec4) for _ in range(3))
         wp.launch(_s.pack_vertex_adjoints, dim=V,
                   inputs=[vcells.order, x, tau_arr, kappa, num, den, nsum, H_grad, n_grad],
                   outputs=[vpos, vcoef, vgs], device=device, record_tape=False)
         shape = (egroups.splits, egroups.padded)
         eparts = [_plan.empty(pool, device, shape, dt) for dt in (wp.float32, wp.float32, wp.vec3, wp.vec3)]
-        wp.launch(_s.soft_edge_adjoint_kernel(t.cull_on(device.is_cuda), moving), dim=egroups.dim,
+        kernel = _s.soft_edge_adjoint_kernel(egroups.per_thread, t.cull_on(device.is_cuda), moving)
+        wp.launch(kernel, dim=egroups.dim,
                   inputs=[f.mid, f.angle, f.normal, reach, kappa, *egroups.args(vcells), vpos, vcoef, vgs],
                   outputs=eparts, device=device, record_tape=False, block_dim=t.block_dim)
         mid_g, length_g, angle_g, normal_g = edge_grads
@@ -618,16 +631,18 @@ class Engine:
             self._grads = wp.empty((self.num_vertices, 4), dtype=wp.float32, device=self.device)
         return self._grads
 
-    def soft_state(self, x: wp.array | _Moving, tau, kappa: float, *,
+    def soft_state(self, x: wp.array | _Moving, tau, kappa: float, *, grad: bool = True,
                    copy: bool = True) -> tuple[wp.array, object] | tuple[wp.array, object, bool]:
-        """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 9) float32
-        array of the caller's own, ``(H, n, N, D, S)`` per vertex, for :meth:`soft_gradient` with ``token``. ``x``
-        may be a :meth:`soft_plan` holding the positions. ``copy=False``: ``(state, token, owned)``, where a state
-        that is not ``owned`` belongs to a graph (copy it out before the next call)."""
+        """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 24) float32
+        array of the caller's own, ``(H, n, N, D, S)`` and the 15 moments of the vertex adjoint per vertex, for
+        :meth:`soft_gradient` with ``token`` (``grad=False``: a (V, 9) array of the sums only, and no token: for a
+        forward pass that no backward pass follows). ``x`` may be a :meth:`soft_plan` holding the positions.
+        ``copy=False``: ``(state, token, owned)``, where a state that is not ``owned`` belongs to a graph (copy it out
+        before the next call)."""
         kappa = check_kappa(kappa, soft=True)
         if not isinstance(x, _Moving):
             x = self.positions(x)
-        outs = self._soft_moving(x, tau, kappa, "auto", packed=True, copy=copy)
+        outs = self._soft_moving(x, tau, kappa, "auto", packed=24 if grad else 9, copy=copy)
         if copy:
             return outs[0], self._soft_token
         return outs[0][0], self._soft_token, outs[1]
@@ -637,9 +652,10 @@ class Engine:
         """The gradient of VNC-soft with respect to the positions ``x`` of a :meth:`soft_state` call that gave
         ``(state, token)``, for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``; None: the
         caller wrote them into :attr:`soft_grads`): (V,) vec3, an array of the caller's own (``copy=False``:
-        ``(gx, owned)`` as for :meth:`soft_state`). Both adjoint passes and the edge fields' adjoint run over the plan
-        of the forward call, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still
-        ``token``), over the traversal that call prepared, else after preparing it again from ``x`` and ``state``
+        ``(gx, owned)`` as for :meth:`soft_state`). The vertices' part comes from the moments of the forward call
+        (one pass over the vertices), the edges' from a gather over the plan of the forward call, then the edge fields'
+        adjoint, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still ``token``),
+        on the edge fields, sums and moments that call left on the device, else on those of ``x`` and ``state``
         (either may be a function giving the array: it is called only then)."""
         kappa = check_kappa(kappa, soft=True)
         t = host_scalar(tau, "tau")
@@ -659,7 +675,7 @@ class Engine:
             E = f.mid.shape[0]
             gx = _plan.zeros(None if fresh else pool, device, V, wp.vec3)
             edge_grads = [_plan.zeros(pool, device, E, dt) for dt in (wp.vec3, wp.float32, wp.float32, wp.vec3)]
-            self._soft_adjoint(plan.x, prep[0], kappa, f, *prep[1:], *sums, H_grad, n_grad, gx, edge_grads,
+            self._soft_adjoint(plan.x, prep[0], kappa, f, prep[-1], *sums, H_grad, n_grad, gx, edge_grads,
                                plan.bounds, plan.strategy, pool, True)
             wp.launch(edge_geometry, dim=E, inputs=[plan.x, f.edges], outputs=[f.mid, f.length, f.angle, f.normal],
                       adj_inputs=[gx, None], adj_outputs=edge_grads, adjoint=True, device=device)
@@ -676,7 +692,7 @@ class Engine:
             outs = self._call(("soft-grad-reuse", plan), "soft-grad", run, copy=copy)
         else:
             if self._state is None:
-                self._state = wp.empty((V, 9), dtype=wp.float32, device=self.device)
+                self._state = wp.empty((V, 24), dtype=wp.float32, device=self.device)
             state_in = self._state
             wp.copy(state_in, state() if callable(state) else state)
 
@@ -686,10 +702,10 @@ class Engine:
                 f = self.fields(plan.x, pool=pool)
                 num, den, H_grad = (_plan.empty(pool, device, V, wp.float32) for _ in range(3))
                 nsum, n_grad = (_plan.empty(pool, device, V, wp.vec3) for _ in range(2))
+                moments = _plan.empty(pool, device, (5, V), wp.vec3)
                 wp.launch(_s.unpack_soft_state, dim=V, inputs=[state_in, grads_in],
-                          outputs=[num, den, nsum, H_grad, n_grad], device=device)
-                prep = (tau_arr, *self._soft_prepare(plan.x, tau_arr, f, plan.bounds, plan.strategy, pool))
-                return adjoint(pool, fresh, f, prep, (num, den, nsum), H_grad, n_grad)
+                          outputs=[num, den, nsum, moments, H_grad, n_grad], device=device)
+                return adjoint(pool, fresh, f, (tau_arr, moments), (num, den, nsum), H_grad, n_grad)
 
             outs = self._call(("soft-grad", plan), "soft-grad", run, copy=copy)
         return outs[0] if copy else (outs[0][0], outs[1])

@@ -61,13 +61,15 @@ class _VncSoft(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, centre: torch.Tensor, eng: Engine, tau, kappa: float):
         # relative to the centre, in the input's precision, then float32: written straight into the positions the
         # plan's graph reads when the plan exists (one torch op, no Warp array made), else into an array of our own
+        # a forward pass that no backward pass follows leaves out the moments of the vertex adjoint
+        grad = ctx.needs_input_grad[0]
         plan = eng.soft_plan(tau, kappa)
         if plan is not None:
             torch.sub(x, centre, out=_view(plan, "x", plan.x))
-            state, token, owned = eng.soft_state(plan, tau, kappa, copy=False)
+            state, token, owned = eng.soft_state(plan, tau, kappa, grad=grad, copy=False)
         else:
-            state, token, owned = eng.soft_state(_centred(x, centre), tau, kappa, copy=False)
-        state = _owned(eng, "state", state, owned)
+            state, token, owned = eng.soft_state(_centred(x, centre), tau, kappa, grad=grad, copy=False)
+        state = _owned(eng, f"state{state.shape[1]}", state, owned)
         ctx.save_for_backward(x, centre)
         # ``state`` is the op's own tensor, which H and n view: a backward pass that must prepare again reads it
         ctx.eng, ctx.tau, ctx.kappa, ctx.token, ctx.state = eng, tau, kappa, token, state
