@@ -86,6 +86,17 @@ def _exception(rec: dict, n: int) -> str | None:
     return None
 
 
+def _moves(rec: dict, S_init: float) -> dict:
+    """Where a stage's ``t`` went: ``t_start``, ``t`` after the remesh between stages (the first entry of the
+    stage's S history), the remeshes within the stage (path, Euler characteristic before and after) and the S
+    history as ``[iteration, t]`` pairs: a stage that lands below its window after a within-stage join, or starts
+    below it after a level-set remesh, shows which remesh took ``t`` there."""
+    history = rec.get("history") or []
+    return {"t_start": history[0][1] / S_init if history else None,
+            "within": [[w.get("method"), w.get("euler_in"), w.get("euler")] for w in rec.get("remeshes_within") or []],
+            "history_t": [[it, S / S_init] for it, S in history]}
+
+
 def summarize(traj, n: int) -> dict:
     """t control, thinning and same-mesh facts of a trajectory."""
     recs = traj.records
@@ -182,7 +193,9 @@ def _run(path, variant, params, args):
     seconds = time.perf_counter() - t0
     keep = ("index", "t", "target_t", "iterations", "evaluations", "seconds", "sphericity", "thickness",
             "thickness_ratio", "euler", "status", "exception", "vertices", "faces")
-    stages = [{k: r.get(k) for k in keep} | {"remesh": (r.get("remesh") or {}).get("method")} for r in traj.records]
+    S_init = traj.info["S_init"]
+    stages = [{k: r.get(k) for k in keep} | {"remesh": (r.get("remesh") or {}).get("method")} | _moves(r, S_init)
+              for r in traj.records]
     run = {"mesh": name, "variant": variant, "held_out": name not in TUNED, "faces": traj.meshes[0].num_faces,
            "seconds": seconds, "stages": stages, "final_t": float(traj.t[-1]),
            "input_sphericity": traj.records[0]["sphericity"], "final_sphericity": traj.records[-1]["sphericity"],
@@ -250,10 +263,13 @@ def parts_table(runs: list) -> list[str]:
 def stage_table(run: dict, n: int) -> str:
     lines = [f"### {run['mesh']} — {run['variant']} ({run['seconds']:.1f} s, sphericity "
              f"{run['input_sphericity']:.3f} -> {run['final_sphericity']:.3f})", "",
-             "| stage | t | ideal 1-i/N | iterations | evaluations | seconds | sphericity | thickness | ratio | Euler | "
-             "remesh | status |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| stage | t | ideal 1-i/N | t after remesh | remeshes within | iterations | evaluations | seconds | "
+             "sphericity | thickness | ratio | Euler | remesh | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in run["stages"]:
-        lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {r['iterations']} | "
+        within = ", ".join(f"{m} {a}->{b}" for m, a, b in r.get("within") or [])
+        lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {_fmt(r.get('t_start'))} | {within} | "
+                     f"{r['iterations']} | "
                      f"{r.get('evaluations') or ''} | {r['seconds']:.2f} | {r['sphericity']:.3f} | "
                      f"{_fmt(r.get('thickness'))} | {_fmt(r.get('thickness_ratio'))} | {r.get('euler', '')} | "
                      f"{r.get('remesh') or ''} | {r['status']} |")

@@ -14,7 +14,8 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
     """Two 4-stage runs at 600 faces: the first is kept with its filmstrip; every summary number is present and
     agrees with the per-stage records (max |t_i - (1 - i/N)|, the smallest thickness ratio); the part breakdown
     has the remesh, within-stage remesh and stage parts (contact checks and remeshes within stages too, which the
-    table left out), and the warm-up before timing is reported. Run again with a budget already spent after one mesh, the second is skipped
+    table left out), each stage says where its t went (t after the remesh between stages, the remeshes within, the
+    S history), and the warm-up before timing is reported. Run again with a budget already spent after one mesh, the second is skipped
     and named as skipped."""
     meshes = tmp_path / "meshes"
     meshes.mkdir()
@@ -33,6 +34,12 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
         assert np.isclose(run["max_dt"], dev)
         ratios = [r["thickness_ratio"] for r in stages[1:]]
         assert np.isclose(run["min_thickness_ratio"], min(ratios))
+        # where t went: stage 1 starts from stage 0 unremeshed, and a stage that met its budget ends on its history
+        assert np.isclose(stages[1]["t_start"], 1.0, atol=1e-5) and stages[0]["t_start"] is None
+        for r in stages[1:]:
+            assert r["t_start"] == r["history_t"][0][1] and isinstance(r["within"], list)
+            if r["status"] == "budget":
+                assert np.isclose(r["history_t"][-1][1], r["t"]), r
         assert np.isfinite(run["remesh_alone"]["dS"]) and run["seconds"] > 0
         assert {"remesh.sdf", "remesh.marching_cubes", "remesh.decimation", "remesh.checks", "within.n", "within.sdf",
                 "stage.steps", "stage.evaluations", "stage.checks", "stage.remesh"} <= set(run["parts"])
