@@ -24,6 +24,7 @@ import warp as wp
 
 import vnc_warp as vw
 from vnc_warp._device import get_device
+from vnc_warp._replay import capture_failures
 
 from .breakdown import _tau, load
 
@@ -128,10 +129,14 @@ def main(argv=None) -> int:
           f"(vnc_warp from {Path(vw.__file__).parent})")
     for name, c in rows.items():
         print(f"  {name:36s} " + ", ".join(f"{k} {v}" for k, v in c.items()))
+    failures = capture_failures()
+    for kind, error in failures:
+        print(f"  graph capture failed ({kind}): {error}")
     if args.out:
         Path(args.out).write_text(json.dumps({"mesh": mesh.name, "V": mesh.num_vertices, "device": str(device),
                                               "tau": args.tau, "replay": args.replay,
-                                              "vnc_warp": str(Path(vw.__file__).parent), "calls": rows}, indent=1))
+                                              "vnc_warp": str(Path(vw.__file__).parent), "calls": rows,
+                                              "capture_failures": failures}, indent=1))
     return 0
 
 

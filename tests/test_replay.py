@@ -262,3 +262,40 @@ def test_moving_scale_curve_and_total_complexity(device):
         expect = np.trapezoid(np.abs(h - h.mean(1, keepdims=True)), taus, axis=0).sum()
         assert S == pytest.approx(expect, rel=1e-4)
     assert len([k for k in eng._plans if k[0] == "curve"]) == 1
+
+
+def test_a_failed_capture_is_recorded_warns_once_and_runs_plain():
+    """A call whose launches cannot be captured (here: its third run, the capture, raises) is not lost: that call
+    and every later one with its key run as usual with fresh outputs, the failure is recorded with its message for
+    benchmarks (vnc_warp._replay.capture_failures) and one RuntimeWarning names it; a second such key warns no more."""
+    import warnings
+
+    from vnc_warp import _replay
+    from vnc_warp._plan import Pool
+
+    device = wp.get_device("cpu")
+    table = _replay.Replay(device, max_graphs=4)
+    plain = Pool(device, "test", {}, None)
+    runs = []
+
+    def run(pool, fresh):
+        runs.append(fresh)
+        if len(runs) == 3:
+            raise RuntimeError("a launch that cannot be captured")
+        return [len(runs)]
+
+    before = len(_replay.capture_failures())
+    assert table.call(("k",), "unit", run, plain) == ([1], True)
+    assert table.call(("k",), "unit", run, plain) == ([2], False)
+    with pytest.warns(RuntimeWarning, match="graph capture of a 'unit' call on cpu failed .*cannot be captured"):
+        assert table.call(("k",), "unit", run, plain) == ([4], True)
+    assert table.call(("k",), "unit", run, plain) == ([5], True)
+    assert table.graphs() == []
+    assert _replay.capture_failures()[before:] == [("unit", "RuntimeError: a launch that cannot be captured")]
+    runs.clear()
+    other = _replay.Replay(device, max_graphs=4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for _ in range(3):
+            other.call(("k2",), "unit", run, plain)
+    assert len(_replay.capture_failures()) == before + 2

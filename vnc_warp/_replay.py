@@ -16,13 +16,14 @@ setting of :func:`set_graph_replay`: CUDA only (on the CPU, kernel time dominate
 
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 
 import warp as wp
 
 from ._plan import Pool
 
-__all__ = ["set_graph_replay", "Replay"]
+__all__ = ["set_graph_replay", "capture_failures", "Replay"]
 
 # device kinds ("cuda", "cpu") whose repeated calls are replayed, for engines whose tuning does not say
 _DEVICES = {"cuda"}
@@ -30,6 +31,9 @@ _DEVICES = {"cuda"}
 _SEEN = "seen"  # a key called once: the next call allocates the graph's scratch
 _WARM = "warm"  # a key whose scratch exists: the next call captures
 _PLAIN = "plain"  # a key whose capture failed: always run as usual
+
+# (call kind, exception) of each failed capture in this process, the first few, for benchmarks and bug reports
+_FAILURES: list = []
 
 
 def set_graph_replay(*kinds: str) -> set:
@@ -46,6 +50,12 @@ def set_graph_replay(*kinds: str) -> set:
         raise ValueError(f"device kinds are 'cuda' and 'cpu', got {sorted(bad)}")
     old, _DEVICES = _DEVICES, set(kinds)
     return old
+
+
+def capture_failures() -> list[tuple[str, str]]:
+    """``(kind, "ExceptionType: message")`` of the graph captures that failed in this process (the first 16): their
+    calls run launch by launch, correct but with a launch's host overhead each (a warning says so once per kind)."""
+    return list(_FAILURES)
 
 
 def replayed_kinds(replay: tuple[str, ...] | None) -> set:
@@ -94,8 +104,15 @@ class Replay:
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                     outs = run(pool, False)
-            except Exception:  # a launch that cannot be captured: this key runs as usual from now on
+            except Exception as exc:  # a launch that cannot be captured: this key runs as usual from now on
                 self.entries[key] = _PLAIN
+                error = f"{type(exc).__name__}: {exc}"
+                if not any(k == kind for k, _ in _FAILURES):
+                    warnings.warn(f"vnc_warp: graph capture of a {kind!r} call on {self.device} failed ({error}); "
+                                  "such calls run launch by launch from now on (correct, slower)", RuntimeWarning,
+                                  stacklevel=2)
+                if len(_FAILURES) < 16:
+                    _FAILURES.append((kind, error))
                 return run(plain, True), True
             state = (capture.graph, outs)
             self.entries[key] = state
