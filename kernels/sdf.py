@@ -250,3 +250,19 @@ def count_buried(mesh_id: wp.uint64, x: wp.array(dtype=wp.vec3), normals: wp.arr
     i = wp.tid()
     if query_signed_distance(mesh_id, x[i] + offset * normals[i], offset, use_winding) < 0.0:
         wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def negate_grid(grid: wp.array3d(dtype=float), out: wp.array3d(dtype=float)):
+    """Per grid node: minus its value (inside becomes positive)."""
+    i, j, k = wp.tid()
+    out[i, j, k] = -grid[i, j, k]
+
+
+@wp.kernel(enable_backward=False)
+def reverse_triangles(indices: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """Per triangle of the (3F,) corners: its corners in reverse order (the other winding)."""
+    f = wp.tid()
+    out[3 * f] = indices[3 * f]
+    out[3 * f + 1] = indices[3 * f + 2]
+    out[3 * f + 2] = indices[3 * f + 1]

@@ -75,9 +75,13 @@ _THICKNESS_SAMPLES = 4096
 # ... but at most this much finer than the face-count spacing: parts too thin for the target face
 # count would only be pinched into non-manifold fins by the decimation.
 _MAX_THIN_REFINE = 2.0
-# Bounds on the automatic resolution, in nodes along the longest bounding-box side.
+# Bounds on the automatic resolution: at least this many nodes along the longest bounding-box side, ...
 _MIN_NODES = 32
-_MAX_NODES = 384
+# ... and at most this many nodes in the whole grid (a 384^3 cube's; 226 MB of float32). A bound on the nodes of the
+# grid, not of its longest side: a long thin shape (sword.obj: 0.92 x 0.23 x 0.034, a blade thinner than a 384-node
+# cell over half its area) was held to 384 x 98 x 15 nodes, 9 % of the budget, and broke into pieces that held
+# fewer faces than it had.
+_MAX_GRID_NODES = 384**3
 # A face whose 2 * area is below this fraction of its summed squared edge lengths is a sliver; Warp's
 # closest-point queries skip such faces, so the next SDF-remesh would not see them either.
 _SLIVER = 1.0e-6
@@ -575,34 +579,65 @@ def _read_source(source: Any) -> _Source:
     return _Source(v[used], remap[f], name, None, repairs, euler, loops, components)
 
 
-def auto_spacing(area: float, side: float, target: int, wm: wp.Mesh, x: wp.array, tri: wp.array) -> float:
+def finest_spacing(extent: np.ndarray) -> float:
+    """Smallest grid spacing (mesh units) at which a bounding box of ``extent`` (3,) spans at most ``_MAX_GRID_NODES``
+    nodes (``side / 383`` for a cube: the cap when it was 384 nodes along the longest side)."""
+    extent = np.maximum(np.asarray(extent, np.float64), 0.0)
+
+    def nodes(h: float) -> float:
+        return float(np.prod(extent / h + 1.0))
+
+    lo, hi = float(extent.max()) / (_MAX_GRID_NODES - 1), float(extent.max())
+    for _ in range(60):  # bisection in log scale: the count falls as h grows
+        mid = float(np.sqrt(lo * hi))
+        lo, hi = (mid, hi) if nodes(mid) > _MAX_GRID_NODES else (lo, mid)
+    return hi
+
+
+def auto_spacing(area: float, extent: np.ndarray, target: int, wm: wp.Mesh, x: wp.array, tri: wp.array) -> float:
     """Grid spacing of the automatic resolution (mesh units); see :func:`sdf_remesh`.
 
     Args:
         area: surface area of the input.
-        side: longest side of its bounding box.
+        extent: (3,) sides of its bounding box.
         target: face count asked for.
         wm: ``wp.Mesh`` of the input, its faces wound outward.
         x, tri: its (V,) vec3 positions and (3F,) int32 corners on ``wm``'s device.
     """
+    side = float(np.max(extent))
     h_faces = np.sqrt(_MC_FACES_PER_AREA * area / (_OVERSAMPLE * target))
     hits = inward_distances(wm, x, tri, _THICKNESS_SAMPLES, span=np.sqrt(3.0) * side)
     hits = hits[hits > 0.0]
     thin = float(np.percentile(hits, _THIN_PERCENTILE)) if hits.size >= 16 else np.sqrt(3.0) * side
     h = max(min(h_faces, thin / _CELLS_ACROSS_THIN), h_faces / _MAX_THIN_REFINE)
-    return float(np.clip(h, side / (_MAX_NODES - 1), side / (_MIN_NODES - 1)))
+    return float(np.clip(h, finest_spacing(extent), side / (_MIN_NODES - 1)))
 
 
 @dataclass
 class _LevelSet:
     """A marching-cubes surface on the device: (V,) vec3 ``points``, (3F,) int32 ``indices``; its host copy and
     component labels are made once, when first asked for (the agreement check and the level-set path both
-    read them)."""
+    read them).
+
+    Marching cubes resolves a cube face whose diagonal corners have equal signs (inside on one diagonal, outside on
+    the other) one of two ways: the inside corners apart, or joined. Warp's table (the CUDA default) keeps them
+    apart, scikit-image's (Lewiner, the CPU default) decides per face, so a part or gap about one cell across
+    comes out differently: boot.obj's laces (Euler characteristic -22) gave -14 from Warp and -24 from scikit-image
+    on one grid, and the CUDA remesh lost 4 handles and 5.3 % of ``S`` where the CPU one lost none. This surface is
+    the grid's marching cubes with ``method``; :meth:`joined` is the other resolution, the marching cubes of the
+    negated grid (whose apart-resolution joins the inside), wound back outward.
+    """
 
     points: wp.array
     indices: wp.array
+    grid: wp.array | None = field(default=None, repr=False)
+    origin: np.ndarray | None = field(default=None, repr=False)
+    spacing: float = 0.0
+    method: str = "warp"
+    negated: bool = False
     _host: tuple | None = field(default=None, repr=False)
     _labels: tuple | None = field(default=None, repr=False)
+    _other: _LevelSet | None = field(default=None, repr=False)
 
     @property
     def num_faces(self) -> int:
@@ -628,6 +663,62 @@ class _LevelSet:
     def mesh(self) -> wp.Mesh:
         return wp.Mesh(points=self.points, indices=self.indices)
 
+    def joined(self) -> _LevelSet:
+        """The same grid's level set with every ambiguous face resolved the other way (made once)."""
+        if self._other is None:
+            if self.grid is None:
+                return self
+            negated = wp.empty_like(self.grid)
+            wp.launch(_k.negate_grid, dim=self.grid.shape, inputs=[self.grid], outputs=[negated],
+                      device=self.grid.device)
+            self._other = _extract(negated, self.origin, self.spacing, self.method, not self.negated)
+            self._other._other = self
+        return self._other
+
+    def resolutions(self) -> tuple[_LevelSet, ...]:
+        """This level set and, on a grid that has one, its other resolution of ambiguous faces."""
+        return (self,) if self.grid is None else (self, self.joined())
+
+    def nearest(self, euler: int | None) -> _LevelSet:
+        """Of the two resolutions, the one whose topology is ``euler``'s or nearest to it (this one on a tie, or
+        when ``euler`` is None)."""
+        if euler is None or self.grid is None or _same_topology(self, euler):
+            return self
+        other = self.joined()
+        if _same_topology(other, euler) or (other.num_faces and abs(other.euler - euler) < abs(self.euler - euler)):
+            return other
+        return self
+
+
+def _extract(grid: wp.array, origin: np.ndarray, h: float, method: str, negated: bool) -> _LevelSet:
+    """Marching cubes of ``grid`` (node ``(i, j, k)`` at ``origin + h (i, j, k)``), wound outward (a ``negated``
+    grid is positive inside)."""
+    device = grid.device
+    shape = grid.shape
+    if method == "warp":
+        import warp.geometry
+
+        upper = origin + h * (np.asarray(shape) - 1)
+        points, indices = warp.geometry.IsoSurfaceMarchingCubes.extract(
+            grid, 0.0, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
+        if negated and indices.shape[0]:
+            flipped = wp.empty_like(indices)
+            wp.launch(_k.reverse_triangles, dim=indices.shape[0] // 3, inputs=[indices], outputs=[flipped],
+                      device=device)
+            indices = flipped
+    else:
+        from skimage.measure import marching_cubes
+
+        values = grid.numpy()
+        if not values.min() < 0.0 < values.max():  # no node inside: every part is thinner than the grid
+            return _LevelSet(wp.empty(0, dtype=wp.vec3, device=device), wp.empty(0, dtype=wp.int32, device=device))
+        verts, tris, _, _ = marching_cubes(values, 0.0, spacing=(h,) * 3)
+        if negated:
+            tris = tris[:, ::-1]
+        points = wp.array(verts.astype(np.float64) + origin, dtype=wp.vec3, device=device)
+        indices = wp.array(np.ascontiguousarray(tris, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device)
+    return _LevelSet(points, indices, grid, origin, h, method, negated)
+
 
 def _level_set(wm: wp.Mesh, lo: np.ndarray, hi: np.ndarray, h: float, shift, area: float, use_winding: int,
                method: str, clock: _Clock) -> _LevelSet:
@@ -639,24 +730,9 @@ def _level_set(wm: wp.Mesh, lo: np.ndarray, hi: np.ndarray, h: float, shift, are
                        use_winding=use_winding, device=device)
     wp.launch(_k.push_off_zero, dim=shape, inputs=[grid, _MIN_ABS_SDF * h], device=device)
     clock.lap("sdf")
-    if method == "warp":
-        import warp.geometry
-
-        upper = origin + h * (np.asarray(shape) - 1)
-        points, indices = warp.geometry.IsoSurfaceMarchingCubes.extract(
-            grid, 0.0, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
-    else:
-        from skimage.measure import marching_cubes
-
-        values = grid.numpy()
-        if not values.min() < 0.0 < values.max():  # no node inside: every part is thinner than the grid
-            clock.lap("marching_cubes")
-            return _LevelSet(wp.empty(0, dtype=wp.vec3, device=device), wp.empty(0, dtype=wp.int32, device=device))
-        verts, tris, _, _ = marching_cubes(values, 0.0, spacing=(h,) * 3)
-        points = wp.array(verts.astype(np.float64) + origin, dtype=wp.vec3, device=device)
-        indices = wp.array(tris.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
+    ls = _extract(grid, origin, h, method, False)
     clock.lap("marching_cubes")
-    return _LevelSet(points, indices)
+    return ls
 
 
 def _farthest(wm: wp.Mesh, points: wp.array, cap: float) -> float:
@@ -682,6 +758,22 @@ def _same_topology(ls: _LevelSet, euler: int) -> bool:
     used[f[main].reshape(-1)] = True
     return (int(np.count_nonzero(used)) - int(main.sum()) // 2 == euler
             and area.max() >= (1.0 - _SPECKS) * area.sum())
+
+
+def _grid_allows(ls: _LevelSet, euler: int) -> bool:
+    """Whether the grid of ``ls`` is consistent with a surface of Euler characteristic ``euler``: a resolution of its
+    ambiguous faces (:class:`_LevelSet`) has that topology (:func:`_same_topology`), or ``euler`` lies between the
+    two: the two resolutions are the extremes this grid shows for necks and gaps about one cell across (boot's laces:
+    -14 and -28 around the surface's -22), a surface between them has its topology at some resolution of them, and
+    a neck narrowed below the grid or parts that met change both. The bound is measured, not proved: on a torus whose
+    tube is one cell across both resolutions broke the ring (2 and 34 around 0), which is then a real change."""
+    sides = ls.resolutions()
+    if any(_same_topology(r, euler) for r in sides):
+        return True
+    if len(sides) < 2 or not all(r.num_faces for r in sides):
+        return False
+    low, high = sorted(r.euler for r in sides)
+    return low <= euler <= high
 
 
 def _lost_share(x: wp.array, tri: wp.array, result: wp.Mesh, distance: float) -> float:
@@ -1130,7 +1222,7 @@ class _Remesher:
         elif positions is not None:
             h = self.spacing
         else:
-            h = auto_spacing(area_in, side, target, wm, x, tri)
+            h = auto_spacing(area_in, hi - lo, target, wm, x, tri)
         report.spacing = h
         clock.lap("checks")
         ls = _level_set(wm, lo, hi, h, _GRIDS[0][0], area_in, self.use_winding, self.method, clock)
@@ -1154,7 +1246,7 @@ class _Remesher:
                 return out, self._conclude(report, expected, refuse=positions is None)
             why = f"re-tessellating the surface itself left {'; '.join(problems)}"
         report.method, report.why_level_set = "level_set", why
-        st, out = self._level_set_path(wm, lo, hi, h, ls, area_in, target, report, clock)
+        st, out = self._level_set_path(wm, lo, hi, h, ls, area_in, target, report, clock, euler=expected)
         edge = np.sqrt(4.0 * area_in * (1.0 - report.dropped_area) / (np.sqrt(3.0) * out.num_faces))
         report.lost_area = _lost_share(x, tri, st.frozen(winding=True), _LOST_EDGES * edge)
         # a surface made from the level set has its own level set, on another grid, at thin gaps and necks:
@@ -1167,7 +1259,7 @@ class _Remesher:
             if self._disagreement(st, wm, ls, lo, hi, report.spacing, area, clock) is None:
                 break
             again = RemeshReport("level_set", report.spacing, out.num_faces, seconds=seconds)
-            st, out = self._level_set_path(wm, lo, hi, report.spacing, ls, area, target, again, clock)
+            st, out = self._level_set_path(wm, lo, hi, report.spacing, ls, area, target, again, clock, euler=st.euler)
             report.topology_passes += 1
             report.dropped_components += again.dropped_components
             report.dropped_area = 1.0 - (1.0 - report.dropped_area) * (1.0 - again.dropped_area)
@@ -1198,22 +1290,25 @@ class _Remesher:
         """Why the surface ``st`` (``wm`` its ``wp.Mesh``, ``area`` its area, ``[lo, hi]`` its bounds) is not its level
         set ``ls`` at spacing ``h``, or None.
 
-        A level set whose Euler characteristic differs from the surface's is sampled once more on the second grid
-        of ``_GRIDS`` (same spacing, offset by a fraction of a cell), and the surface is its level set if that one
-        agrees: a topology change that one grid shows and another does not is a gap or a neck at the grid's own
-        resolution, which the placement of the grid joins or splits, not the shape (boot's laces: Euler
-        characteristic -26, -22, -22 and -28 on four offsets of one grid). Sending such a surface down the
+        A level set whose Euler characteristic differs from the surface's is checked with the other resolution of
+        its ambiguous cube faces (:func:`_grid_allows`), then sampled once more on the second grid of ``_GRIDS``
+        (same spacing, offset by a fraction of a cell), and the surface is its level set if either grid allows it:
+        a topology change that one grid or one resolution shows and another does not is a gap or a neck at the
+        grid's own resolution, which the placement of the grid joins or splits, not the shape (boot's laces: Euler
+        characteristic -26, -22, -22 and -28 on four offsets of one grid with scikit-image's marching cubes; -14
+        and -28 on one grid with Warp's, ambiguous faces kept apart and joined). Sending such a surface down the
         marching-cubes path lost 8 of its 12 handles and 9.7 % of its total VNC-AUC in one remesh of an unchanged
         surface. A real change (a handle narrowed below the grid, parts that met) shows on both grids.
         """
         if not ls.num_faces:
             return "its level set is empty"
-        if not _same_topology(ls, st.euler):
+        if not _grid_allows(ls, st.euler):
             clock.lap("checks")
             other = _level_set(wm, lo, hi, h, _GRIDS[1][0], area, self.use_winding, self.method, clock)
             clock.lap("checks")
-            if not _same_topology(other, st.euler):
-                return f"its level set has Euler characteristic {ls.euler}, the surface {st.euler}"
+            if not _grid_allows(other, st.euler):
+                return (f"its level set has Euler characteristic {ls.euler} ({ls.joined().euler} with ambiguous "
+                        f"faces joined), the surface {st.euler}")
             ls = other
         added = _farthest(wm, ls.points, 2.0 * _AGREE_CELLS * h) / h
         if added > _AGREE_CELLS:
@@ -1225,19 +1320,21 @@ class _Remesher:
             return f"{buried} vertex(es) lie inside another part of the shape (self-intersection)"
         return None
 
-    def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock):
+    def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock, *, euler=None):
         """Marching cubes, the largest component, decimation, regularization onto the marching-cubes
-        surface; retried on other grids and less aggressive decimations until the result is valid."""
+        surface; retried on other grids and less aggressive decimations until the result is valid. Of each grid's
+        two resolutions of ambiguous faces, the one nearest the Euler characteristic ``euler`` (if given: the
+        surface's) is used, so that handles and gaps about one cell across are kept on every device."""
         import fast_simplification
 
         failures = []
         tiny = 1e-12 * float(((hi - lo) ** 2).sum())
         for g, (shift, refine) in enumerate(_GRIDS):
             h = h0 * refine
-            ls = first if g == 0 else None
+            ls = first.nearest(euler) if g == 0 else None
             for _ in range(3):
                 if ls is None:
-                    ls = _level_set(wm, lo, hi, h, shift, area_in, self.use_winding, self.method, clock)
+                    ls = _level_set(wm, lo, hi, h, shift, area_in, self.use_winding, self.method, clock).nearest(euler)
                 v_mc, f_mc = ls.host()
                 kept = 0
                 if f_mc.shape[0]:
@@ -1248,9 +1345,8 @@ class _Remesher:
                 if kept >= 1.2 * target or self.resolution is not None:
                     break
                 # aim at the oversampled count again, refining at most 4x per step and never past the cap
-                side = float((hi - lo).max())
                 finer = max(h * 0.9 * np.sqrt(max(kept, 1) / (_OVERSAMPLE * target)), 0.25 * h,
-                            side / (_MAX_NODES - 1))
+                            finest_spacing(hi - lo))
                 if finer >= h:
                     break
                 h, ls = finer, None
@@ -1389,7 +1485,8 @@ def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = 
       the shape along inward face normals, 4096 rays), so thin parts keep two cells across and do
       not break up, but no less than half the first;
 
-    clamped to 32-384 nodes along the longest bounding-box side. If marching cubes still yields
+    clamped to at least 32 nodes along the longest bounding-box side and at most 384^3 nodes in the
+    whole grid. If marching cubes still yields
     fewer than 1.2x ``faces``, the spacing is refined and the grid resampled.
 
     Isotropic regularization: quadric decimation leaves edge lengths varying by a factor of several
