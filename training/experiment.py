@@ -848,8 +848,9 @@ def _montage(path: Path, traj_dir: Path, rows: dict[str, Path], times: tuple[flo
     traj = read_trajectory(traj_dir)
     order = sorted(times, reverse=True)
     gt_t = np.array([s.t for s in traj.stages])
-    gt = [traj.load_stage(int(np.argmin(np.abs(gt_t - t)))) for t in order]
-    queried = _stage_times(traj_dir, tuple(order))
+    nearest = [int(np.argmin(np.abs(gt_t - t))) for t in order]
+    gt = [traj.load_stage(i) for i in nearest]
+    queried = [float(gt_t[i]) for i in nearest]  # the t each model was asked for (_stage_times)
     camera = Camera.fit(gt[0], azimuth=30.0, elevation=20.0)
     frames, labels = [], []
     for m, t in zip(gt, queried):
