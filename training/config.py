@@ -68,7 +68,8 @@ class ModelConfig:
             same codes from the start (see :class:`~vnc_warp.training.model.KLBottleneck`).
         sdf_init: the SDF an untrained decoder predicts everywhere (the bias of its zero-weight head); the TSDF
             truncation starts from empty space, 0 from a surface everywhere.
-        pretrained: C-VAE-II only: path of the plain VAE checkpoint whose encoder is frozen.
+        pretrained: path of a plain VAE checkpoint: C-VAE-II freezes its encoder (required); a C-VAE-I starts
+            from its weights, the time branch from the identity (optional; None: from scratch).
     """
 
     kind: str = "cvae1"

@@ -46,6 +46,7 @@ import math
 import multiprocessing
 import os
 import platform
+import shutil
 import time
 import typing
 import warnings
@@ -119,6 +120,10 @@ class ExperimentConfig:
         distill_repeats: the same for the single distilled trajectory.
         train_budget_s: wall-clock seconds of training C-VAE-I and, the same, of the VAE, in all (over every call);
             None trains the configured steps.
+        cvae1_fork: None trains C-VAE-I from scratch; a fraction f in (0, 1) starts it from the VAE's weights at
+            f of the VAE's planned steps (the time branch from the identity) and gives it (1 - f) of the
+            VAE's budget (``train_budget_s``, or the steps), so that both models get the same optimisation in
+            all. The VAE then trains first.
         distill_budget_s: wall-clock seconds of training C-VAE-II, in all; None trains the configured steps.
         max_minutes: wall-clock minutes of one call of :func:`run_experiment`, counted from its start: training
             stops with a checkpoint at the end of the first step past it, generation before the next prediction,
@@ -168,6 +173,7 @@ class ExperimentConfig:
     repeats: int = 1
     distill_repeats: int = 4
     train_budget_s: float | None = None
+    cvae1_fork: float | None = None
     distill_budget_s: float | None = None
     max_minutes: float | None = None
     calibration_steps: int = 30
@@ -242,6 +248,8 @@ class ExperimentConfig:
             raise ValueError(f"noise must list positive standard deviations, got {list(self.noise)}")
         if not self.times or not all(0.0 <= t <= 1.0 for t in self.times):
             raise ValueError(f"times must be a non-empty list in [0, 1], got {list(self.times)}")
+        if self.cvae1_fork is not None and not 0.0 < self.cvae1_fork < 1.0:
+            raise ValueError(f"cvae1_fork must be in (0, 1) or None, got {self.cvae1_fork}")
         for key in ("flow_budget_s", "train_budget_s", "distill_budget_s", "max_minutes"):
             value = getattr(self, key)
             if value is not None and not value > 0:
@@ -256,10 +264,12 @@ class ExperimentConfig:
 
 def run_config(config: ExperimentConfig, kind: str, *, pretrained: str | None = None) -> TrainConfig:
     """The training configuration of model ``kind`` (``cvae1``, ``vae``, ``cvae2``): its section of
-    ``config`` with the shared backbone and the model's encoder input."""
+    ``config`` with the shared backbone and the model's encoder input; ``pretrained`` is the VAE checkpoint
+    C-VAE-II (and C-VAE-I with ``cvae1_fork``) starts from."""
     section = getattr(config, kind)
     cfg = TrainConfig.from_dict(section.to_dict())
-    cfg.model = dataclasses.replace(config.backbone, kind=kind, pretrained=pretrained if kind == "cvae2" else None)
+    starts_from_vae = kind == "cvae2" or (kind == "cvae1" and config.cvae1_fork is not None)
+    cfg.model = dataclasses.replace(config.backbone, kind=kind, pretrained=pretrained if starts_from_vae else None)
     if kind == "vae":
         encoder_input = "item"
     elif kind == "cvae2":
@@ -345,13 +355,15 @@ _BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
 
 def _gpu() -> ExperimentConfig:
     """One H100 or H200, about 25 minutes in five calls of at most ~9 minutes (steps 1, 2, 2, 3, 4: step 2 trains
-    two models for 300 s each and is cut by ``max_minutes`` = 8.5 into two calls).
+    the VAE for 380 s and C-VAE-I from the VAE's half-way weights for 190 s, and is cut by ``max_minutes`` = 8.5
+    into two calls).
 
     60 humanoids (5 held out), 16 blobs (1 held out) and 16 real meshes for training, the two real bodies held
     out; every shape flowed by VNC-Flow to 8 stages at 6,000 faces, the distilled body (human_man) to 32.
-    Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 300 s of
-    training each (their curves still fell at 180 s in the third H200 run), C-VAE-II 330 s; 256^3 marching
-    cubes, CD on 100k points, EMD on 4,096.
+    Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 380 s of
+    training each in all, the first 190 s shared (``cvae1_fork`` = 0.5: from scratch in 300 s C-VAE-I underfit,
+    its t = 1 bodies in pieces, in the fifth H200 run), C-VAE-II 300 s (330 s gave 1.3-1.9x the floor); 256^3 marching cubes, CD on 100k points,
+    EMD on 4,096.
     """
     big = dict(batch=32, surface=4096, queries=8192, workers=8, eik_queries=512, log_every=20, ckpt_every=200,
                on_surface=1024, **_RECIPE)
@@ -366,7 +378,7 @@ def _gpu() -> ExperimentConfig:
                              num_freqs=8, chunk_size=65536, time_tokens=4, time_freq_dim=256, modulator_depth=2,
                              sdf_init=0.1),
         **_sections(lr=4e-4, steps=20000, warmup=100, common=big, distill=distill),
-        repeats=8, distill_repeats=64, train_budget_s=300.0, distill_budget_s=330.0, max_minutes=8.5,
+        repeats=8, distill_repeats=64, train_budget_s=380.0, cvae1_fork=0.5, distill_budget_s=300.0, max_minutes=8.5,
         calibration_steps=30,
         min_steps=100, torch_threads=None, resolution=256, n_points=100_000, n_emd=4096, eval_workers=14,
         figures=True, render_size=192)
@@ -682,12 +694,15 @@ def _rows(run: Path) -> list[dict]:
 
 
 def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | None, budget_s: float | None,
-           config: ExperimentConfig, progress: bool, log: Callable[[str], None], deadline: float | None = None) -> dict:
+           config: ExperimentConfig, progress: bool, log: Callable[[str], None], deadline: float | None = None,
+           fork_at: float | None = None) -> dict:
     """Train one model to its planned step count (resuming, or skipping when done) and summarize it.
 
     The budget is the model's in all: the calibration turns it into a step count once (``plan.json``), and every
     call adds its seconds to the plan's. ``deadline`` (a :func:`time.monotonic` time) stops the training after
     the calibration with a checkpoint; the summary's ``finished`` is then False and the same call resumes.
+    ``fork_at`` (a fraction of the planned steps) keeps a copy of the checkpoint of that step as ``fork.pt``
+    (:attr:`ExperimentConfig.cvae1_fork`).
     """
     from .train import train
 
@@ -717,16 +732,33 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
         plan_path.write_text(json.dumps(plan, indent=1))
     cfg = _scaled(cfg, plan["total_steps"])
     done = _last_step(run)
+    fork = run / "fork.pt"
+    if fork_at is not None:
+        plan["fork_step"] = int(np.clip(round(fork_at * plan["total_steps"]), plan.get("calibration_steps", 1),
+                                        plan["total_steps"]))
+        if done > plan["fork_step"] and not fork.is_file():
+            raise ValueError(f"{run}: the VAE is at step {done}, past the step {plan['fork_step']} C-VAE-I starts "
+                             "from (cvae1_fork), and has no fork.pt: train it again in a new work folder")
     if done < cfg.optim.total_steps:
         log(f"  {kind}: training to step {cfg.optim.total_steps} (from {done}), budget "
-            f"{'none' if budget_s is None else f'{budget_s:.0f} s'}")
+            f"{'none' if budget_s is None else f'{budget_s:.0f} s'}"
+            + ("" if fork_at is None else f", C-VAE-I starts from step {plan['fork_step']}"))
         t0 = time.perf_counter()
         try:
             with warnings.catch_warnings():
                 # the calibration ran under the nominal schedule; the planned one taking over is the design
                 warnings.filterwarnings("ignore", message="resume at step .* schedule settings changed")
-                train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, deadline=deadline,
-                      progress=progress)
+                if fork_at is not None and not fork.is_file():
+                    if done < plan["fork_step"]:
+                        train(cfg, data=dataset, out_dir=run, device=device, resume=done > 0, deadline=deadline,
+                              stop_at=plan["fork_step"], progress=progress)
+                    if _last_step(run) == plan["fork_step"]:
+                        tmp = fork.with_suffix(".tmp")
+                        shutil.copyfile(run / "checkpoints" / "last.pt", tmp)
+                        os.replace(tmp, fork)
+                if fork_at is None or fork.is_file():
+                    train(cfg, data=dataset, out_dir=run, device=device, resume=_last_step(run) > 0,
+                          deadline=deadline, progress=progress)
         finally:  # an interrupted run's seconds count too
             plan["seconds"] = plan.get("seconds", 0.0) + seconds + time.perf_counter() - t0
             plan_path.write_text(json.dumps(plan, indent=1))
@@ -746,6 +778,7 @@ def _train(kind: str, cfg: TrainConfig, dataset, run: Path, *, device: str | Non
             "samples_per_s": cfg.optim.total_steps * cfg.data.batch_size / max(plan["seconds"], 1e-9),
             "steady_samples_per_s": float(np.median(steady)) if steady else math.nan,
             "final": final, "budget_s": plan.get("budget_s"), "items": len(dataset),
+            **({"fork_step": plan["fork_step"]} if "fork_step" in plan else {}),
             "curve": {k: [[r["step"], r.get(k)] for r in rows[:: max(1, len(rows) // 200)]] for k in ("tsdf", "eval_tsdf")}}
 
 
@@ -988,16 +1021,22 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
     not_trained = () if distill is None or distill.role == "train" else (distill.name,)
     unfinished: list[str] = []
     started = False  # a model trained in this call: the first one always starts, so that every call gets on
-    for kind in ("cvae1", "vae", "cvae2"):
+    fork = config.cvae1_fork
+    for kind in ("cvae1", "vae", "cvae2") if fork is None else ("vae", "cvae1", "cvae2"):
         if kind == "cvae2" and (distill is None or last_step < 3):
             continue
         if unfinished:
             unfinished.append(kind)
             continue
-        cfg = run_config(config, kind, pretrained=str((runs / "vae" / "checkpoints" / "last.pt").resolve()))
+        start = runs / "vae" / ("fork.pt" if kind == "cvae1" else "checkpoints/last.pt")
+        cfg = run_config(config, kind, pretrained=str(start.resolve()))
         if config.data_workers is not None:
             cfg.data = dataclasses.replace(cfg.data, num_workers=config.data_workers)
         budget = config.distill_budget_s if kind == "cvae2" else config.train_budget_s
+        if kind == "cvae1" and fork is not None:
+            # the steps before the fork are the VAE's and C-VAE-I's both: the rest of the same budget is its own
+            budget = None if budget is None else (1.0 - fork) * budget
+            cfg = _scaled(cfg, max(1, round((1.0 - fork) * cfg.optim.total_steps)))
         if (started and deadline is not None and not _trained(runs / kind)
                 and deadline - time.monotonic() < min(_MIN_START_S, 15.0 * config.max_minutes)):
             log(f"  {kind}: not started, {max(deadline - time.monotonic(), 0.0):.0f} s left of the time limit")
@@ -1007,7 +1046,9 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
             started = started or not _trained(runs / kind)
             training[kind] = _train(kind, cfg, _dataset(kind, cfg, config, work, distill, not_trained), runs / kind,
                                     device=str(torch_device), budget_s=budget, config=config, progress=progress,
-                                    log=log, deadline=deadline)
+                                    log=log, deadline=deadline, fork_at=fork if kind == "vae" else None)
+        if kind == "cvae1" and fork is not None:
+            training[kind]["starts_from"] = {"model": "vae", "step": training["vae"]["fork_step"]}
         if not training[kind]["finished"]:
             unfinished.append(kind)
     results["training"] = training
@@ -1074,7 +1115,8 @@ def _step_summary(step: int, results: dict, clock: _Clock, log: Callable[[str], 
                "notes": results["notes"], "unfinished": unfinished or []}
     if "training" in results:
         summary["training"] = {k: {"steps": v["steps"], "done_steps": v["done_steps"], "seconds": v["seconds"],
-                                   "final": v["final"]} for k, v in results["training"].items()}
+                                   "final": v["final"], **{x: v[x] for x in ("fork_step", "starts_from") if x in v}}
+                               for k, v in results["training"].items()}
     if unfinished:
         log(f"[experiment] step {step} ({STEPS[step]}) NOT finished after {clock.total():.1f} s (time limit "
             f"{results['experiment']['max_minutes']} min): {', '.join(unfinished)} left; run the same command "
@@ -1370,6 +1412,10 @@ def results_markdown(results: dict) -> str:
                      f"{tr['steps']} | {tr['batch_size']} | {_fmt(tr['seconds'], 1)} | "
                      f"{_fmt(tr['steady_samples_per_s'], 1)} | {_fmt(f.get('tsdf'), 5)} | {_fmt(f.get('eval_tsdf'), 5)} | "
                      f"{_fmt(f.get('surf'), 5)} | {_fmt(f.get('normal'), 4)} |")
+    forked = results["training"].get("cvae1", {}).get("starts_from")
+    if forked:
+        lines += ["", f"C-VAE-I started from the VAE's weights at its step {forked['step']} (cvae1_fork): the steps up "
+                  "to there count for both, each model's own steps after it make up the same budget."]
     lines += ["", "L_tsdf columns: mean of the last tenth of the run; the eval column decodes the posterior mean "
               "in eval mode, as inference does.", "",
               "## Latent anatomy (held-out trajectories, every stage)", "",

@@ -216,6 +216,14 @@ class PointEncoder(nn.Module):
         self.condition = (nn.ModuleList(AttentionBlock(width, context_dim=condition_dim, **block)
                                         for _ in range(depth + 1)) if condition_dim else None)
 
+    def identity_condition(self) -> None:
+        """Make every fusion block the identity (zero output layers of both residual branches): the encoder then
+        encodes as the plain encoder does at every t, until training moves them."""
+        for blk in self.condition or ():
+            for layer in (blk.attn.proj, blk.mlp.net[-1]):
+                nn.init.zeros_(layer.weight)
+                nn.init.zeros_(layer.bias)
+
     def forward(self, surface: torch.Tensor, *, condition: torch.Tensor | None = None,
                 random_start: bool = False) -> torch.Tensor:
         """Encode a surface sample.
@@ -629,21 +637,32 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
 
     Args:
         config: the model section of a training config.
-        load_pretrained: C-VAE-II only: load the frozen encoder (and the decoder it starts from) from
-            ``config.pretrained``; ``False`` builds it randomly initialised, for loading a full
-            C-VAE-II checkpoint afterwards.
+        load_pretrained: load ``config.pretrained``, a plain VAE checkpoint: C-VAE-II's frozen encoder (and the
+            decoder it starts from), or the backbone a C-VAE-I starts from (its time branch starts as the
+            identity); ``False`` builds the model randomly initialised, for loading a full checkpoint afterwards.
 
     Raises:
         ValueError: unknown kind, C-VAE-II without ``pretrained``, or a pre-trained checkpoint whose
             architecture differs from ``config``.
+        CheckpointError: ``config.pretrained`` is not a plain VAE's checkpoint.
         FileNotFoundError: ``config.pretrained`` does not exist.
     """
     backbone = config.backbone_kwargs()
     if config.kind == "vae":
         return VecSetVAE(**backbone)
     if config.kind == "cvae1":
-        return CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim, time_scale=config.time_scale,
-                     **backbone)
+        model = CVAE1(time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
+                      time_scale=config.time_scale, **backbone)
+        if load_pretrained and config.pretrained:
+            missing, unexpected = model.load_state_dict(_pretrained_vae(config), strict=False)
+            # the time branch is all a C-VAE-I adds to the VAE: anything else missing is a different architecture
+            foreign = [k for k in missing if not k.startswith(("time_embed.", "encoder.condition."))]
+            if foreign or unexpected:
+                raise CheckpointError(f"{config.pretrained}: weights do not fit a C-VAE-I backbone (missing "
+                                      f"{foreign[:3]}, unexpected {list(unexpected)[:3]})")
+            # it starts as the VAE it is built on, decoding that VAE's surface at every t until the time branch learns
+            model.encoder.identity_condition()
+        return model
     if config.kind != "cvae2":
         raise ValueError(f"unknown model kind {config.kind!r}; expected 'vae', 'cvae1' or 'cvae2'")
     base = VecSetVAE(**backbone)
@@ -651,20 +670,25 @@ def build_model(config: ModelConfig, *, load_pretrained: bool = True) -> _Latent
         if not config.pretrained:
             raise ValueError("C-VAE-II needs model.pretrained: the checkpoint of a plain VecSet VAE "
                              "(train one with the 'vae' or 'tiny-vae' config)")
-        ckpt = load_checkpoint(config.pretrained)
-        pre = ckpt["config"]["model"]
-        if pre.get("kind") != "vae":
-            raise CheckpointError(f"{config.pretrained}: C-VAE-II needs a plain VAE checkpoint, this one is "
-                                  f"model.kind={pre.get('kind')!r}")
-        # chunk_size sets how queries are batched, logvar_init and sdf_init only the initial weights: no architecture
-        diff = {k: (pre.get(k), v) for k, v in backbone.items()
-                if k not in ("chunk_size", "logvar_init", "sdf_init") and pre.get(k) != v}
-        if diff:
-            detail = ", ".join(f"{k}: checkpoint {a!r} vs config {b!r}" for k, (a, b) in diff.items())
-            raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")
-        base.load_state_dict(ckpt["model"])
+        base.load_state_dict(_pretrained_vae(config))
     return CVAE2(base=base, time_tokens=config.time_tokens, time_freq_dim=config.time_freq_dim,
                  time_scale=config.time_scale, modulator_depth=config.modulator_depth, logvar_init=config.logvar_init)
+
+
+def _pretrained_vae(config: ModelConfig) -> dict[str, torch.Tensor]:
+    """The weights of the plain VAE checkpoint ``config.pretrained``, checked against ``config``'s backbone."""
+    ckpt = load_checkpoint(config.pretrained)
+    pre = ckpt["config"]["model"]
+    if pre.get("kind") != "vae":
+        raise CheckpointError(f"{config.pretrained}: {config.kind} needs a plain VAE checkpoint, this one is "
+                              f"model.kind={pre.get('kind')!r}")
+    # chunk_size sets how queries are batched, logvar_init and sdf_init only the initial weights: no architecture
+    diff = {k: (pre.get(k), v) for k, v in config.backbone_kwargs().items()
+            if k not in ("chunk_size", "logvar_init", "sdf_init") and pre.get(k) != v}
+    if diff:
+        detail = ", ".join(f"{k}: checkpoint {a!r} vs config {b!r}" for k, (a, b) in diff.items())
+        raise ValueError(f"{config.pretrained}: pre-trained VAE architecture differs from model config ({detail})")
+    return ckpt["model"]
 
 
 def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> tuple[nn.Module, TrainConfig]:

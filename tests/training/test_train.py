@@ -437,6 +437,40 @@ def test_cvae2_trains_on_a_pretrained_vae(tmp_path):
         build_model(bad)
 
 
+def test_cvae1_starts_from_a_vae_as_that_vae(tmp_path):
+    """A C-VAE-I built on a trained VAE's checkpoint (model.pretrained) decodes exactly that VAE's SDF at every t
+    before it trains (its time branch starts as the identity; the VAE itself is the oracle), then learns: after a
+    few steps on trajectories its SDF depends on t. A C-VAE-II checkpoint is refused as a starting point."""
+    ds = EllipsoidTrajectories(num_shapes=1, num_stages=4, seed=3)
+    train(named_config("tiny-vae"), data=ds, out_dir=tmp_path / "vae", device="cpu", stop_at=3, progress=False)
+    vae_ckpt = tmp_path / "vae" / "checkpoints" / "last.pt"
+    vae, _ = load_model(vae_ckpt)
+    cfg = named_config("tiny")
+    cfg.model = dataclasses.replace(cfg.model, pretrained=str(vae_ckpt))
+    cvae1 = build_model(cfg.model).eval()
+    item = ds[0]
+    surface = torch.as_tensor(item["surface"])[None]
+    queries = torch.as_tensor(item["queries"])[None]
+
+    def sdf(model, t=None):
+        with torch.no_grad():
+            return model.decode(model.encode(surface, t, sample=False)[0], queries)
+
+    want = sdf(vae)
+    assert want.abs().max() > 0  # a decoder that predicts something to compare against
+    for t in (0.0, 0.4, 1.0):
+        assert torch.allclose(sdf(cvae1, t), want, atol=1e-6), t
+    train(cfg, data=ds, out_dir=tmp_path / "cvae1", device="cpu", stop_at=20, progress=False)
+    moved, _ = load_model(tmp_path / "cvae1" / "checkpoints" / "last.pt")
+    assert (sdf(moved, 0.0) - sdf(moved, 1.0)).abs().max() > 1e-4
+    cvae2 = named_config("tiny-cvae2")
+    cvae2.model = dataclasses.replace(cvae2.model, pretrained=str(vae_ckpt))
+    train(cvae2, data=ds, out_dir=tmp_path / "cvae2", device="cpu", stop_at=1, progress=False)
+    cfg.model = dataclasses.replace(cfg.model, pretrained=str(tmp_path / "cvae2" / "checkpoints" / "last.pt"))
+    with pytest.raises(CheckpointError, match="needs a plain VAE checkpoint"):
+        build_model(cfg.model)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
