@@ -666,6 +666,8 @@ class Engine:
                  and plan.prep is not None)
         if not reuse:
             plan = self._moving(key, self.positions(x() if callable(x) else x), tau, self._soft_bounds("auto"))
+            # the plan's positions are no longer those of the last forward call: its backward pass must not reuse
+            self._soft_token = None
         grads_in = self.soft_grads
         if grads is not None:
             wp.copy(grads_in, grads)
