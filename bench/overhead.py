@@ -8,7 +8,9 @@ spent there is measured apart and left out of the "host" column (on CUDA that ca
 table (median microseconds per call over ``--repeats`` runs of ``--calls`` calls) and, with ``--out``, writes it as
 JSON; ``--profile NAME`` prints a cProfile of one row instead. ``--host-only`` replaces ``wp.capture_launch`` by a
 no-op after the warm-up (the results are then meaningless; the Python path is the same): the steadiest measure of the
-host cost on a loaded machine. ``--device cuda:0`` times the same calls on a GPU, where "total" is the figure.
+host cost on a loaded machine; ``--cpu-time`` times with the process's CPU time instead of the wall clock (time spent
+waiting for a core on a shared machine is left out; every thread's time is counted, torch's intra-op threads too).
+``--device cuda:0`` times the same calls on a GPU, where "total" is the figure.
 
     python -m bench.overhead                      # the table
     python -m bench.overhead --profile positions  # where that row's host time goes
@@ -33,15 +35,16 @@ from vnc_warp.tuning import Tuning
 
 
 _in_graph = [0.0]
+_clock = [time.perf_counter]
 
 
 def _timed_capture_launch(launch):
     def timed(*args, **kwargs):
-        t0 = time.perf_counter()
+        t0 = _clock[0]()
         try:
             return launch(*args, **kwargs)
         finally:
-            _in_graph[0] += time.perf_counter() - t0
+            _in_graph[0] += _clock[0]() - t0
 
     return timed
 
@@ -91,6 +94,7 @@ def main(argv=None) -> None:
     p.add_argument("--profile", default=None, help="a row name: print its cProfile instead of the table")
     p.add_argument("--out", type=Path, default=None, help="JSON file to write the table to")
     p.add_argument("--host-only", action="store_true", help="replayed graphs do nothing (host path only)")
+    p.add_argument("--cpu-time", action="store_true", help="the process's CPU time instead of the wall clock")
     a = p.parse_args(argv)
     wp.config.quiet = True
     wp.init()
@@ -107,29 +111,31 @@ def main(argv=None) -> None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         return
     wp.capture_launch = _timed_capture_launch(wp.capture_launch)
+    clock = _clock[0] = time.process_time if a.cpu_time else time.perf_counter
     table = {}
     for name, fn in fns.items():
         total, host = [], []
         for _ in range(a.repeats):
             wp.synchronize_device(a.device)
             _in_graph[0] = 0.0
-            t0 = time.perf_counter()
+            t0 = clock()
             for _ in range(a.calls):
                 fn()
             wp.synchronize_device(a.device)
-            dt = time.perf_counter() - t0
+            dt = clock() - t0
             total.append(dt / a.calls * 1e6)
             host.append((dt - _in_graph[0]) / a.calls * 1e6)
         table[name] = {"host_us": float(np.median(host)), "host_min_us": float(np.min(host)),
                        "total_us": float(np.median(total))}
-    print(f"icosphere({a.subdivisions}), device {a.device}, replay on{', graphs not run' if a.host_only else ''}; us per "
+    print(f"icosphere({a.subdivisions}), device {a.device}, replay on{', graphs not run' if a.host_only else ''}"
+          f"{', CPU time' if a.cpu_time else ''}; us per "
           f"call, median (min) of {a.repeats} x {a.calls} calls; host = total less the replayed graphs")
     print("| call | host us | min | total us |\n|---|---|---|---|")
     for name, r in table.items():
         print(f"| {name} | {r['host_us']:.1f} | {r['host_min_us']:.1f} | {r['total_us']:.1f} |")
     if a.out:
         a.out.write_text(json.dumps({"subdivisions": a.subdivisions, "device": a.device, "host_only": a.host_only,
-                                     "rows": table}, indent=1))
+                                     "cpu_time": a.cpu_time, "rows": table}, indent=1))
 
 
 if __name__ == "__main__":

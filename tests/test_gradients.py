@@ -306,6 +306,63 @@ def test_torch_gradient_backward_twice_and_after_a_forward_without_gradient():
     torch.testing.assert_close(H, H_plain, rtol=0, atol=0)
 
 
+def test_torch_gradient_when_the_forward_state_is_saved_late_or_prepared_again(device):
+    """A replayed forward pass copies out only H and n: the moments its backward pass reads stay in the graph's
+    arrays until the engine's next VNC-soft call, which saves them first. Each way a backward pass can get them gives
+    the gradient of its own positions (that of a call run as usual; bit for bit on the CPU, to 1e-5 of the largest
+    entry on CUDA): read on the device; saved by a later forward pass at other positions; read on the device, then
+    (``retain_graph``, after a forward pass at other positions overwrote them) prepared again; and with two meshes
+    alternating forward and backward passes (one engine each), their positions moving every call."""
+    meshes = [_mesh(6), _mesh(7)]
+    wts = [tuple(w.to(torch.float32).to(device) for w in _objective_weights(m.num_vertices, 8 + i))
+           for i, m in enumerate(meshes)]
+    replay = Tuning(replay=("cpu", "cuda"))
+
+    def loss_of(m, v, tuning):
+        H, n = vnc_soft(v, meshes[m], 0.6, tuning=tuning)
+        return (H * wts[m][0]).sum() + (n * wts[m][1]).sum()
+
+    def at(m, k):
+        base = torch.tensor(meshes[m].vertices, dtype=torch.float32, device=device)
+        return (base * (1.0 + 0.01 * k)).requires_grad_(True)
+
+    def plain(m, k):
+        v = at(m, k)
+        loss_of(m, v, Tuning(replay=())).backward()
+        return v.grad
+
+    def same(got, want):
+        atol = 0.0 if torch.device(device).type == "cpu" else 1e-5 * float(want.abs().max())
+        torch.testing.assert_close(got, want, rtol=0, atol=atol)
+
+    for k in range(3):  # the plan, the graphs' scratch, the captures
+        v = at(0, k)
+        loss_of(0, v, replay).backward()
+        same(v.grad, plain(0, k))
+    va, vb = at(0, 4), at(0, 5)
+    la = loss_of(0, va, replay)
+    lb = loss_of(0, vb, replay)  # saves the state of la before overwriting it
+    la.backward()
+    same(va.grad, plain(0, 4))
+    lb.backward(retain_graph=True)  # on the device, releasing the state
+    same(vb.grad, plain(0, 5))
+    loss_of(0, at(0, 6), replay).backward()  # overwrites what lb's forward pass left
+    lb.backward()  # prepared again at vb
+    same(vb.grad, 2 * plain(0, 5))
+    for k in range(6):
+        for m in (0, 1):
+            v = at(m, 10 + k)
+            loss_of(m, v, replay).backward()
+            same(v.grad, plain(m, 10 + k))
+    vs = [at(m, 20 + m) for m in (0, 1)]
+    losses = [loss_of(m, vs[m], replay) for m in (0, 1)]
+    for m in (1, 0):
+        losses[m].backward()
+        same(vs[m].grad, plain(m, 20 + m))
+    for m in (0, 1):  # the later calls were replayed
+        assert {k[0] for k in vw.engine(meshes[m], device, tuning=replay).graphs()} >= {"soft-x", "soft-grad-reuse"}
+
+
 def test_torch_gradient_as_positions_and_scales_change(device):
     """The torch op's plan outlives its positions and per-vertex scales (a flow's iterations): calls at moved
     positions, and with a few scales grown threefold (the largest radius past the plan's, the mean within its

@@ -184,6 +184,15 @@ class _Moving:
         return False
 
 
+class _Token:
+    """The token of a VNC-soft call that leaves what its backward pass reuses: its plan and its arguments as given."""
+
+    __slots__ = ("plan", "tau", "kappa")
+
+    def __init__(self, plan: _Moving, tau, kappa: float):
+        self.plan, self.tau, self.kappa = plan, tau, kappa
+
+
 class Engine:
     """The VNC operator (Sec. 3.1) on one mesh and one device: see the module docstring.
 
@@ -220,6 +229,8 @@ class Engine:
         # a new token for every VNC-soft call: a backward pass may reuse what its forward call prepared while the
         # engine's token is still that call's (no other call has written the scratch since)
         self._soft_token = None
+        # token -> a weak reference to what a caller still reads in a graph's outputs (:meth:`hold`)
+        self._held: dict = {}
 
     def __repr__(self) -> str:
         return f"Engine({self.name!r}, V={self.num_vertices}, device={self.device.alias!r})"
@@ -266,10 +277,33 @@ class Engine:
         table = self._replays.get(stream)
         return [] if table is None else table.graphs()
 
+    def hold(self, token: object, held) -> None:
+        """Keep ``held`` (referenced weakly) while its owner reads the outputs of the VNC-soft call that gave ``token``
+        in a graph's arrays: ``held.save()`` (which copies them out) runs before the engine's next VNC-soft call, the
+        only kind whose scratch holds them (:class:`~vnc_warp._plan.Pool` keys its buffers by kind), unless
+        :meth:`soft_gradient` with ``token`` comes first: it reads them on the device and calls ``held.release()``
+        instead. An op whose backward pass may need them so copies them only when they are about to change."""
+        self._held[token] = weakref.ref(held)
+
+    def _save_held(self) -> None:
+        for ref in self._held.values():
+            held = ref()
+            if held is not None:
+                held.save()
+        self._held.clear()
+
+    def _release(self, token: object) -> None:
+        ref = self._held.pop(token, None)
+        held = ref() if ref is not None else None
+        if held is not None:
+            held.release()
+
     def _call(self, key: tuple, kind: str, run, *, copy: bool = True) -> list | tuple[list, bool]:
         """``run(pool, fresh)``'s outputs, replayed when possible, as arrays of the caller's own; with ``copy=False``
         ``(outputs, owned)`` instead, where outputs that are not ``owned`` belong to a graph: the caller copies them
         out (in its own way) before the next call on the engine's stream."""
+        if self._held and kind == "soft":
+            self._save_held()
         table = self._replay()
         if table is None:
             outs, fresh = run(self.pool(kind), True), True
@@ -465,7 +499,7 @@ class Engine:
         self._soft_token = None
         outs, fresh = self._call(("soft-x", plan, packed), "soft", run, copy=False)
         plan.fetch(copied=not fresh)
-        self._soft_token = plan.token = object() if packed > 9 else None
+        self._soft_token = plan.token = _Token(plan, tau, kappa) if packed > 9 else None
         if copy:
             return outs if fresh else [wp.clone(o) for o in outs]
         return outs, fresh
@@ -638,7 +672,7 @@ class Engine:
         :meth:`soft_gradient` with ``token`` (``grad=False``: a (V, 9) array of the sums only, and no token: for a
         forward pass that no backward pass follows). ``x`` may be a :meth:`soft_plan` holding the positions.
         ``copy=False``: ``(state, token, owned)``, where a state that is not ``owned`` belongs to a graph (copy it out
-        before the next call)."""
+        before the next call, or :meth:`hold` it)."""
         kappa = check_kappa(kappa, soft=True)
         if not isinstance(x, _Moving):
             x = self.positions(x)
@@ -657,6 +691,9 @@ class Engine:
         adjoint, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still ``token``),
         on the edge fields, sums and moments that call left on the device, else on those of ``x`` and ``state``
         (either may be a function giving the array: it is called only then)."""
+        replayed = self._replayed_gradient(token, tau, kappa, grads)
+        if replayed is not None:
+            return wp.clone(replayed) if copy else (replayed, False)
         kappa = check_kappa(kappa, soft=True)
         t = host_scalar(tau, "tau")
         key = self._soft_key(kappa, t)
@@ -664,8 +701,12 @@ class Engine:
         plan = self._plans.get(key)
         reuse = (plan is not None and token is not None and plan.token is token and self._soft_token is token
                  and plan.prep is not None)
-        if not reuse:
+        if reuse:  # the forward call's state is not read, nor kept for later
+            self._release(token)
+        else:
             plan = self._moving(key, self.positions(x() if callable(x) else x), tau, self._soft_bounds("auto"))
+            # the plan's positions are no longer those of the last forward call: its backward pass must not reuse
+            self._soft_token = None
         grads_in = self.soft_grads
         if grads is not None:
             wp.copy(grads_in, grads)
@@ -709,6 +750,25 @@ class Engine:
 
             outs = self._call(("soft-grad", plan), "soft-grad", run, copy=copy)
         return outs[0] if copy else (outs[0][0], outs[1])
+
+    def _replayed_gradient(self, token, tau, kappa, grads: wp.array | None) -> wp.array | None:
+        """:meth:`soft_gradient`'s common case at the host cost of a graph launch: the backward pass of the engine's
+        last VNC-soft call, given the same ``tau`` object and ``kappa``, once its graph is captured (the gradient, a
+        graph's output); else None (nothing done)."""
+        if not isinstance(token, _Token) or token is not self._soft_token or token.tau is not tau or (
+                token.kappa != kappa):
+            return None
+        plan = token.plan
+        if plan.token is not token or plan.prep is None or self._plans.get(plan.key) is not plan:
+            return None
+        table = self._replay()
+        key = ("soft-grad-reuse", plan)
+        if table is None or not table.captured(key):
+            return None
+        self._release(token)
+        if grads is not None:
+            wp.copy(self.soft_grads, grads)
+        return table.launch(key)[0]
 
     # --- VNC-hard and the integrated measure, Eqs. (1)-(2) -------------------------------------------------------
 

@@ -75,6 +75,17 @@ class Replay:
         """The keys whose graph is captured."""
         return [k for k, v in self.entries.items() if isinstance(v, tuple)]
 
+    def captured(self, key: tuple) -> bool:
+        """Whether the call ``key`` has a captured graph (:meth:`launch` replays it)."""
+        return isinstance(self.entries.get(key), tuple)
+
+    def launch(self, key: tuple) -> list:
+        """Replay the captured graph of ``key`` (:meth:`captured`): its outputs, as :meth:`call` gives them."""
+        graph, outs = self.entries[key]
+        self.entries.move_to_end(key)
+        wp.capture_launch(graph)
+        return outs
+
     def drop(self, match) -> None:
         """Forget every key for which ``match(key)`` holds (their graphs too)."""
         for k in [k for k in self.entries if match(k)]:

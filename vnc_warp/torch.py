@@ -52,6 +52,23 @@ def _owned(owner, name: str, arr: wp.array, owned: bool) -> torch.Tensor:
     return wp.to_torch(arr, requires_grad=False) if owned else _view(owner, name, arr).clone()
 
 
+class _Held:
+    """The (V, 24) state of a forward pass for its backward pass (:meth:`Engine.hold`): a view of the graph's output
+    until the engine's next VNC-soft call, then a copy of it; None once a backward pass has read what the forward
+    pass left on the device (that pass may run again, ``retain_graph``: it then prepares the state again)."""
+
+    __slots__ = ("state", "__weakref__")
+
+    def __init__(self, state: torch.Tensor):
+        self.state = state
+
+    def save(self) -> None:
+        self.state = self.state.clone()
+
+    def release(self) -> None:
+        self.state = None
+
+
 def _centred(x: torch.Tensor, centre: torch.Tensor) -> wp.array:
     return wp.from_torch((x - centre).to(torch.float32).contiguous(), dtype=wp.vec3, requires_grad=False)
 
@@ -69,19 +86,34 @@ class _VncSoft(torch.autograd.Function):
             state, token, owned = eng.soft_state(plan, tau, kappa, grad=grad, copy=False)
         else:
             state, token, owned = eng.soft_state(_centred(x, centre), tau, kappa, grad=grad, copy=False)
-        state = _owned(eng, f"state{state.shape[1]}", state, owned)
+        if owned or token is None:  # the caller's own, or no backward pass follows: one tensor for H and n
+            out = state = _owned(eng, f"state{state.shape[1]}", state, owned)
+        else:
+            # H and n are copied out of the graph's output, the moments only when a VNC-soft call is about to write
+            # over them before the backward pass (which reads them on the device): a (V, 24) copy per call cost
+            # more host time than the rest of a replayed call on the CPU (torch's threaded copy)
+            state = _view(eng, f"state{state.shape[1]}", state)
+            out = state[:, :4].clone()
+        ctx.held = _Held(state)
+        if not owned and token is not None:
+            eng.hold(token, ctx.held)
         ctx.save_for_backward(x, centre)
-        # ``state`` is the op's own tensor, which H and n view: a backward pass that must prepare again reads it
-        ctx.eng, ctx.tau, ctx.kappa, ctx.token, ctx.state = eng, tau, kappa, token, state
-        return state[:, 0], state[:, 1:4]
+        ctx.eng, ctx.tau, ctx.kappa, ctx.token = eng, tau, kappa, token
+        return out[:, 0], out[:, 1:4]
 
     @staticmethod
     def backward(ctx, grad_H: torch.Tensor, grad_n: torch.Tensor):
         eng = ctx.eng
         x, centre = ctx.saved_tensors
         torch.cat([grad_H.reshape(-1, 1), grad_n], dim=1, out=_view(eng, "grads", eng.soft_grads))
-        gx, owned = eng.soft_gradient(lambda: _centred(x, centre), ctx.tau, ctx.kappa,
-                                      lambda: wp.from_torch(ctx.state, requires_grad=False), None, ctx.token,
+
+        def state():
+            held = ctx.held
+            if held.state is None:  # read on the device by an earlier backward pass, and overwritten since
+                return eng.soft_state(_centred(x, centre), ctx.tau, ctx.kappa)[0]
+            return wp.from_torch(held.state, requires_grad=False)
+
+        gx, owned = eng.soft_gradient(lambda: _centred(x, centre), ctx.tau, ctx.kappa, state, None, ctx.token,
                                       copy=False)
         gx = _owned(eng, "grad", gx, owned)
         return gx.to(x.dtype), None, None, None, None
