@@ -55,10 +55,11 @@ def _eq5(state, taus, params: dict, S0: float, steps: int, device) -> dict:
 
 def _smooth(state, taus, dt: float, S0: float, device, *, preserve_volume: bool) -> list[float]:
     """``t`` after 1, 2, 3 backward-Euler steps ``(M - dt L) x' = M x (+ dt 2 mean(H) A n)``, dt in squared mean edge
-    lengths; the volume-preserving term moves every vertex out by the mean of the cotangent mean curvature."""
+    lengths; the volume-preserving term moves every vertex out by the mean of the cotangent mean curvature, and the
+    step is scaled back to the volume it started from."""
     import warp as wp
 
-    from vnc_warp._reduce import vertex_normals
+    from vnc_warp._reduce import face_measures, vertex_normals
     from vnc_warp.flow import FlowParams, _Stepper
 
     st = _Stepper(state, taus, FlowParams(method="mcf_implicit", mcf_dt=dt), device)
@@ -71,8 +72,13 @@ def _smooth(state, taus, dt: float, S0: float, device, *, preserve_volume: bool)
             n = vertex_normals(st.x, st.surface.tri).numpy().astype(np.float64)
             two_h = -np.sum((st.L @ v) * n) / area.sum()
             rhs = rhs + st.dt * two_h * area[:, None] * n
+        volume = face_measures(st.x, st.surface.tri)[1]
         v = np.stack([st.solve(rhs[:, d]) for d in range(3)], axis=1)
         st.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=st.device)
+        if preserve_volume:  # as the fallback of vnc_warp.flow: scaled back to the volume before the step
+            c = v.mean(axis=0)
+            v = c + (v - c) * (volume / face_measures(st.x, st.surface.tri)[1]) ** (1.0 / 3.0)
+            st.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=st.device)
         out.append(st.complexity() / S0)
     return out
 
