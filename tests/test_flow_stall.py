@@ -38,7 +38,8 @@ def test_flow_stall_measures_the_stage_it_is_given(tmp_path):
     assert all(len(r["t"]) == 3 and np.all(np.isfinite(r["t"])) for r in doc["smoothing"])
 
     run_dir = str(out / "trajectories" / "shape.obj")
-    statuses = [r["status"] for r in json.loads((out / "trajectories" / "shape.obj" / "manifest.json").read_text())["stages"]]
+    manifest = json.loads((out / "trajectories" / "shape.obj" / "manifest.json").read_text())
+    statuses = [r["status"] for r in manifest["stages"]]
     first = flow_stall.diagnose(run_dir, None, dts=[1.0], steps=4, device="cpu")
     if "held" in statuses:
         assert first["stage"] == statuses.index("held") - 1

@@ -122,9 +122,9 @@ _FALLBACK_DT = 1.0
 # ... and where such a step does not lower S, the same step with Eq. (5)'s mean (speed H - mean H: the shape is not
 # shrunk), then both at this many times the step, up to _FALLBACK_DT_MAX. Plain mean curvature flow alone (before)
 # shrank the hammer at 6,000 faces (stage 17, t 0.478) into a needle (across 1.78 -> 0.76 at dt 16) and raised S at
-# every dt from 1 to 256, so stages 18-32 kept stage 17's state; with the mean, dt 256 takes t to 0.416 in two steps
-# (sphericity 0.25 -> 0.39; bench/flow_stall.py). The dumbbell's waist needs the plain step: with the mean its stage 2
-# stalled at t 0.725 (target 0.5), a shape of two balls being nearly still under a volume-preserving flow.
+# every dt from 1 to 256 (bench/flow_stall.py), so stages 18-32 kept stage 17's state; with the mean, four steps (dt 1,
+# 1, 256, 256) land stage 18 at t 0.4371 (target 0.4375; sphericity 0.254 -> 0.415). The dumbbell's waist needs the
+# plain step: with only the mean (before its volume was scaled back) its stage 2 stalled at t 0.725 (target 0.5).
 _FALLBACK_GROWTH = 4.0
 _FALLBACK_DT_MAX = 1024.0
 # ... at most this many evaluations of S per stage, each step kept only while it lowers S.
