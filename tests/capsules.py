@@ -1,5 +1,5 @@
 """Small closed test shapes made of capsules (signed distance fields + scikit-image marching cubes): a T-posed
-body (torso, head, two arms, two legs), a torso on two legs side by side and a dumbbell, a few thousand faces
+body (torso, head, two arms, two legs), a torso on two legs side by side, a hammer and a dumbbell, a few thousand faces
 each, for CPU tests of thin parts."""
 
 import numpy as np
@@ -10,6 +10,8 @@ BODY = [((0.0, 0.0, 0.0), (0.0, 0.55, 0.0), 0.22), ((0.0, 0.85, 0.0), (0.0, 0.86
 # a torso on two legs side by side, 0.1 apart (about three grid cells of the remesher at 3000 faces)
 LEGS = [((0.0, 0.0, 0.0), (0.0, 0.55, 0.0), 0.22), ((0.0, 0.85, 0.0), (0.0, 0.86, 0.0), 0.14),
         ((0.14, -0.05, 0.0), (0.14, -0.9, 0.0), 0.09), ((-0.14, -0.05, 0.0), (-0.14, -0.9, 0.0), 0.09)]
+# a hammer: a handle 0.14 thick under a head 0.26 thick (plain mean curvature flow raises its S at any step)
+HAMMER = [((0.0, -0.95, 0.0), (0.0, 0.55, 0.0), 0.07), ((-0.4, 0.65, 0.0), (0.4, 0.65, 0.0), 0.13)]
 DUMBBELL = [((-0.6, 0.0, 0.0), (-0.6, 0.0, 0.0), 0.35), ((0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.35),
             ((-0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.1)]
 

@@ -44,8 +44,10 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   reached; ``max_iters`` likewise, unless the **smoothing fallback** takes it on (every stage but the last):
   where Eq. (5) stops lowering ``S`` short of the window (it stands still or climbs ``S`` on a fattened dumbbell
   whose neck became a waist),
-  backward-Euler mean-curvature steps (``_FALLBACK_DT``) from the best state, each kept only while it lowers ``S``
-  and the last searched back on its chord, land it (status ``smoothed``, the steps in ``exception``); before, such a
+  backward-Euler mean-curvature steps from the best state, each kept only while it lowers ``S`` (where none does:
+  the same with Eq. (5)'s mean, speed ``H - H_ref``, which does not shrink the shape into a needle; then both at four
+  times the step, ``_FALLBACK_DT`` = 1 to 1024 squared edge lengths), and the last searched back on its chord, land it
+  (status ``smoothed``, the steps, their kind and ``dt`` in ``exception``); before, such a
   stage recorded the previous state, and every later stage repeated it. A stalled stage is remeshed from its best
   state and goes on (at most ``stall_remeshes`` times), at half the step if ``S`` never fell below the stage's
   start; on a shape with a handle whose ``S`` never fell, from its current state instead: a handle narrowing
@@ -117,8 +119,16 @@ _RISE_INIT = 0.05
 # lengths lower S there (the dumbbell: 0.763 -> 0.613 -> 0.543; 5 overshoots into a shrinking, pinching shape whose
 # S climbs) ...
 _FALLBACK_DT = 1.0
-# ... at most this many per stage, each kept only while it lowers S.
-_FALLBACK_STEPS = 8
+# ... and where such a step does not lower S, the same step with Eq. (5)'s mean (speed H - mean H: the shape is not
+# shrunk), then both at this many times the step, up to _FALLBACK_DT_MAX. Plain mean curvature flow alone (before)
+# shrank the hammer at 6,000 faces (stage 17, t 0.478) into a needle (across 1.78 -> 0.76 at dt 16) and raised S at
+# every dt from 1 to 256 (bench/flow_stall.py), so stages 18-32 kept stage 17's state; with the mean, four steps (dt 1,
+# 1, 256, 256) land stage 18 at t 0.4371 (target 0.4375; sphericity 0.254 -> 0.415). The dumbbell's waist needs the
+# plain step: with only the mean (before its volume was scaled back) its stage 2 stalled at t 0.725 (target 0.5).
+_FALLBACK_GROWTH = 4.0
+_FALLBACK_DT_MAX = 1024.0
+# ... at most this many evaluations of S per stage, each step kept only while it lowers S.
+_FALLBACK_TRIES = 24
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -984,7 +994,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             and p.scale_mode == "adaptive"):
         smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
         if smoothed is not None:
-            stepper, S_a, found, steps = smoothed
+            stepper, S_a, found, _ = smoothed
             evaluations += found
             rec["kept"] = True
             clock.lap("fallback")
@@ -1013,8 +1023,10 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     elif status in ("max_iters", "converged"):
         if smoothed is not None:
             exception = ((exception + "; ") if exception else "") + (
-                f"Eq. (5) did not descend ({status} after {it} iterations); {smoothed[3]} implicit smoothing step(s) "
-                f"took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
+                f"Eq. (5) did not descend ({status} after {it} iterations); {len(smoothed[3])} implicit smoothing "
+                f"step(s) ({', '.join(f'{kind} dt {d:g}' for kind, d in smoothed[3])}; dt in squared edge lengths) "
+                f"took t to "
+                f"{S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
             if abs(S_a - target) <= tol:
                 status = "smoothed"
         else:
@@ -1031,30 +1043,66 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
 
 def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: float, target: float, tol: float,
                         history: list, it: int):
-    """Backward-Euler mean-curvature smoothing steps (``M x' = M x + dt L x'``, the implicit baseline of Fig. 7 (f)
-    at ``_FALLBACK_DT``) from the stage's best state while each lowers ``S``, the last one searched back on its chord
-    into the window: for a stage where Eq. (5) stands still or climbs ``S``. Returns ``(stepper, S, evaluations,
-    steps)`` with the smoothed state, or None when the first step does not lower ``S``."""
+    """Backward-Euler smoothing steps from the stage's best state, for a stage where Eq. (5) stands still or climbs
+    ``S``: ``(M - dt L) x' = M x + dt c 2 H_ref A n``, with ``L`` the cotangent Laplacian (``L x = -2 H A n``),
+    ``M = A`` the vertex areas, ``H_ref`` the area mean of ``H`` and ``dt`` in squared mean edge lengths. ``c = 0`` is
+    mean curvature flow, the implicit baseline of Fig. 7 (f); ``c = 1`` moves each vertex by about
+    ``-2 dt (H - H_ref) n``, Eq. (5) at the vertex's own scale, which keeps the shape from shrinking. The steps are
+    tried in the order (mean curvature flow, with the mean) at ``dt = _FALLBACK_DT``, then at ``_FALLBACK_GROWTH``
+    times that, up to ``_FALLBACK_DT_MAX``: a step that lowers ``S`` is kept and repeated, one that does not is undone
+    and the next kind is tried (at most ``_FALLBACK_TRIES`` evaluations of ``S``); the last is searched back on its
+    chord into the window. Returns ``(stepper, S, evaluations, steps)`` with the smoothed state and the kept steps as
+    ``(kind, dt)`` (``"mcf"`` or ``"mean"``), or None when no step lowers ``S``."""
+    from scipy.sparse.linalg import factorized
+
     q = dataclasses.replace(p, method="mcf_implicit", mcf_dt=_FALLBACK_DT)
     smoother = _Stepper(stepper.current(), taus, q, device)
+    area = smoother.M.diagonal()
+    kinds = []
+    dt = _FALLBACK_DT
+    while dt <= _FALLBACK_DT_MAX:
+        kinds += [("mcf", dt), ("mean", dt)]
+        dt *= _FALLBACK_GROWTH
+    solvers = {_FALLBACK_DT: smoother.solve}
     x_a = wp.clone(smoother.x)
-    S_best, evaluations, steps = S_a, 0, 0
-    for _ in range(_FALLBACK_STEPS):
-        smoother.step()
+    S_best, evaluations, steps, k = S_a, 0, [], 0
+    while evaluations < _FALLBACK_TRIES and k < len(kinds):
+        kind, dt = kinds[k]
+        if dt not in solvers:
+            solvers[dt] = factorized((smoother.M - (dt * smoother.edge**2) * smoother.L).tocsc())
+        v = smoother.x.numpy().astype(np.float64)
+        rhs = smoother.M @ v
+        if kind == "mean":
+            n = vertex_normals(smoother.x, smoother.surface.tri).numpy().astype(np.float64)
+            two_h_ref = -float(np.sum((smoother.L @ v) * n)) / float(area.sum())
+            rhs = rhs + (dt * smoother.edge**2 * two_h_ref) * area[:, None] * n
+        volume = face_measures(smoother.x, smoother.surface.tri)[1] if kind == "mean" else None
+        v = np.stack([solvers[dt](rhs[:, d]) for d in range(3)], axis=1)
+        smoother.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
+        if volume is not None:
+            # the continuous flow keeps the volume; the step's explicit mean does not quite (the capsule hammer at
+            # dt 16: +57 %), and S is measured at the trajectory's fixed scales, so a larger shape would count as a
+            # smoother one: scaled back to the volume it had
+            c = v.mean(axis=0)
+            v = c + (v - c) * (volume / face_measures(smoother.x, smoother.surface.tri)[1]) ** (1.0 / 3.0)
+            smoother.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
         S = smoother.complexity()
         evaluations += 1
-        history.append([it + steps + 1, S])
+        history.append([it + evaluations, S])
         if not S < S_best:
-            break
-        steps += 1
+            wp.copy(smoother.x, x_a)
+            k += 1
+            continue
+        steps.append((kind, dt))
         if S < target - tol:
-            S, found = _search_chord(smoother, x_a, S_best, S, target, tol, history, it + steps - 1, it + steps)
+            S, found = _search_chord(smoother, x_a, S_best, S, target, tol, history, it + evaluations - 1,
+                                     it + evaluations)
             return smoother, S, evaluations + found, steps
         S_best = S
         wp.copy(x_a, smoother.x)
         if S <= target + tol:
             break
-    if steps == 0:
+    if not steps:
         return None
     wp.copy(smoother.x, x_a)
     return smoother, S_best, evaluations, steps
