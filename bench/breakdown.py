@@ -6,6 +6,10 @@ For each operator and scale it reports the wall time of a synchronized call (med
 enqueue it (the call without the final synchronization; a call that reads a result on the host in the middle
 includes that wait), the device busy time summed over its kernels and copies, and the kernels by time. This is
 the tool for deciding whether a call is launch-bound (host time close to wall time) or kernel-bound.
+
+``--ops torch`` times the torch op's VNC-soft forward + backward (:func:`vnc_warp.torch.vnc_soft`, as bench.vnc's
+``vnc_soft_fwd+bwd`` row): with ``--no-graphs`` its kernels show how the backward's cost splits between the forward's
+moments, the edge adjoint and the small kernels around them.
 """
 
 from __future__ import annotations
@@ -75,6 +79,22 @@ def _kernels(fn, device) -> tuple[float, dict]:
     return busy, top
 
 
+def _torch_fwd_bwd(mesh: vw.Mesh, tau: float, device, tuning: Tuning | None):
+    """One forward + backward pass of the torch op's VNC-soft on ``device`` (the loss of bench.vnc's row)."""
+    import torch
+
+    from vnc_warp.torch import vnc_soft
+
+    v = torch.tensor(mesh.vertices, dtype=torch.float32, device=wp.device_to_torch(device), requires_grad=True)
+
+    def fn():
+        H, n = vnc_soft(v, mesh, tau, tuning=tuning)
+        (H.sum() + n[:, 2].sum()).backward()
+        v.grad = None
+
+    return fn
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default=None)
@@ -82,8 +102,10 @@ def main(argv=None) -> int:
     ap.add_argument("--subdivide", type=int, default=0, help="midpoint-subdivide the mesh this many times")
     ap.add_argument("--taus", nargs="+", default=["2", "8", "diag/4", "diag/2"],
                     help="multiples of the mean edge length, or diag/N")
-    ap.add_argument("--ops", nargs="+", default=["soft", "hard", "curve"], choices=["soft", "soft_x", "hard", "curve"],
-                    help="soft_x: VNC-soft with the positions given as a device array (as a flow step calls it)")
+    ap.add_argument("--ops", nargs="+", default=["soft", "hard", "curve"],
+                    choices=["soft", "soft_x", "torch", "hard", "curve"],
+                    help="soft_x: VNC-soft with the positions given as a device array (as a flow step calls it); "
+                         "torch: the torch op's VNC-soft forward + backward")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-graphs", action="store_true",
                     help="run every call as launched (no graph replay: Tuning(replay=())), to see its kernels")
@@ -104,6 +126,8 @@ def main(argv=None) -> int:
             elif op == "soft_x":
                 tau = _tau(mesh, spec)
                 fn = lambda tau=tau: vw.vnc_soft(mesh, tau, positions=x, tuning=tuning)  # noqa: E731
+            elif op == "torch":
+                fn = _torch_fwd_bwd(mesh, _tau(mesh, spec), device, tuning)
             elif op == "hard":
                 tau = _tau(mesh, spec)
                 fn = lambda tau=tau: vw.vnc_hard(mesh, tau, device=device, tuning=tuning)  # noqa: E731
