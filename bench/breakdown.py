@@ -9,7 +9,8 @@ the tool for deciding whether a call is launch-bound (host time close to wall ti
 
 ``--ops torch`` times the torch op's VNC-soft forward + backward (:func:`vnc_warp.torch.vnc_soft`, as bench.vnc's
 ``vnc_soft_fwd+bwd`` row): with ``--no-graphs`` its kernels show how the backward's cost splits between the forward's
-moments, the edge adjoint and the small kernels around them.
+moments, the edge adjoint and the small kernels around them; ``--vertex-scatter cpu,cuda`` times it with the vertices'
+part added by the edge adjoint instead (``Tuning.vertex_scatter``).
 """
 
 from __future__ import annotations
@@ -109,10 +110,16 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-graphs", action="store_true",
                     help="run every call as launched (no graph replay: Tuning(replay=())), to see its kernels")
+    ap.add_argument("--vertex-scatter", default=None, metavar="KINDS",
+                    help="Tuning.vertex_scatter as comma-separated device kinds ('cpu,cuda'; '' for none): where the "
+                         "torch op's backward adds the vertices' part from the edge adjoint's pairs")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     device = get_device(args.device)
     tuning = Tuning(replay=()) if args.no_graphs else None
+    if args.vertex_scatter is not None:
+        kinds = tuple(k for k in args.vertex_scatter.split(",") if k)
+        tuning = (tuning or Tuning()).replace(vertex_scatter=kinds)
     mesh = load(args.mesh, args.subdivide)
     x = wp.array(mesh.vertices, dtype=wp.vec3, device=device)
     rows = []
@@ -149,7 +156,7 @@ def main(argv=None) -> int:
             rows.append({"op": op, "tau": spec, "wall_ms": wall, "host_ms": host, "device_ms": busy, "kernels": top})
     if args.out:
         Path(args.out).write_text(json.dumps({"mesh": mesh.name, "V": mesh.num_vertices, "device": str(device),
-                                              "rows": rows}, indent=1))
+                                              "vertex_scatter": args.vertex_scatter, "rows": rows}, indent=1))
     return 0
 
 

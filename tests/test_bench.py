@@ -105,15 +105,18 @@ def test_breakdown_runs_and_reports_every_operator(tmp_path):
 
 def test_breakdown_times_the_torch_forward_and_backward(tmp_path):
     """``python -m bench.breakdown --ops torch`` on the CPU device times the torch op's VNC-soft forward + backward
-    with every kernel launched (no graph replay): one row per scale, with finite wall and host times."""
+    with every kernel launched (no graph replay), with the vertices' part from the forward's moments and from the edge
+    adjoint (``--vertex-scatter``): one row per scale, with finite wall and host times."""
     from bench import breakdown
 
     out = tmp_path / "breakdown.json"
-    assert breakdown.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--ops",
-                           "torch", "--repeats", "1", "--no-graphs", "--out", str(out)]) == 0
-    rows = json.loads(out.read_text())["rows"]
-    assert [(r["op"], r["tau"]) for r in rows] == [("torch", "2")]
-    assert math.isfinite(rows[0]["wall_ms"]) and rows[0]["wall_ms"] > 0 and math.isfinite(rows[0]["host_ms"])
+    for scatter in ("", "cpu"):
+        assert breakdown.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--ops",
+                               "torch", "--repeats", "1", "--no-graphs", "--vertex-scatter", scatter,
+                               "--out", str(out)]) == 0
+        rows = json.loads(out.read_text())["rows"]
+        assert [(r["op"], r["tau"]) for r in rows] == [("torch", "2")]
+        assert math.isfinite(rows[0]["wall_ms"]) and rows[0]["wall_ms"] > 0 and math.isfinite(rows[0]["host_ms"])
 
 
 def test_tune_times_every_setting(tmp_path):
