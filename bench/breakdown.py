@@ -4,7 +4,8 @@
 
 For each operator and scale it reports the wall time of a synchronized call (median), the host time to
 enqueue it (the call without the final synchronization; a call that reads a result on the host in the middle
-includes that wait), the device busy time summed over its kernels and copies, and the kernels by time. This is
+includes that wait), the device busy time summed over its kernels and copies, and the kernels by time (on the CPU
+device: each launch's thread CPU time, which other processes on the machine do not inflate). This is
 the tool for deciding whether a call is launch-bound (host time close to wall time) or kernel-bound.
 
 ``--ops torch`` times the torch op's VNC-soft forward + backward (:func:`vnc_warp.torch.vnc_soft`, as bench.vnc's
@@ -64,17 +65,35 @@ def _median_ms(fn, device, repeats: int, sync: bool) -> float:
 
 
 def _kernels(fn, device) -> tuple[float, dict]:
-    if not device.is_cuda:
-        return float("nan"), {}
-    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    fn()
-    results = wp.timing_end()
     per: dict[str, list] = {}
-    for r in results:
-        name = re.sub(r"_[0-9a-f]{8}$", "", r.name.replace("forward kernel ", ""))
-        per.setdefault(name, [0.0, 0])
-        per[name][0] += r.elapsed
-        per[name][1] += 1
+    if device.is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        fn()
+        for r in wp.timing_end():
+            name = re.sub(r"_[0-9a-f]{8}$", "", r.name.replace("forward kernel ", ""))
+            per.setdefault(name, [0.0, 0])
+            per[name][0] += r.elapsed
+            per[name][1] += 1
+    else:
+        # the CPU device runs a kernel on the launching thread before wp.launch returns: its thread CPU time is the
+        # kernel's, whatever else the machine runs
+        launch = wp.launch
+
+        def timed(kernel, *args, **kwargs):
+            t0 = time.thread_time()
+            try:
+                return launch(kernel, *args, **kwargs)
+            finally:
+                name = re.sub(r"_[0-9a-f]{8}$", "", kernel.key.split("__locals__")[-1])
+                per.setdefault(name, [0.0, 0])
+                per[name][0] += 1e3 * (time.thread_time() - t0)
+                per[name][1] += 1
+
+        wp.launch = timed
+        try:
+            fn()
+        finally:
+            wp.launch = launch
     busy = float(sum(v[0] for v in per.values()))
     top = {k: {"ms": round(v[0], 4), "count": v[1]} for k, v in sorted(per.items(), key=lambda kv: -kv[1][0])}
     return busy, top
