@@ -492,14 +492,15 @@ def unpack_soft_state(
     H_grad: wp.array(dtype=float),
     n_grad: wp.array(dtype=wp.vec3),
 ):
-    """The sums and moments of a :func:`pack_soft_state` row of 24 and the upstream gradients ``(dL/dH, dL/dn)`` of a
-    row of 4."""
+    """The sums (and in a row of 24 the moments) of a :func:`pack_soft_state` row and the upstream gradients
+    ``(dL/dH, dL/dn)`` of a row of 4."""
     k = wp.tid()
     num[k] = state[k, 4]
     den[k] = state[k, 5]
     nsum[k] = wp.vec3(state[k, 6], state[k, 7], state[k, 8])
-    for c in range(5):
-        moments[c, k] = wp.vec3(state[k, 9 + 3 * c], state[k, 10 + 3 * c], state[k, 11 + 3 * c])
+    if state.shape[1] > 9:
+        for c in range(5):
+            moments[c, k] = wp.vec3(state[k, 9 + 3 * c], state[k, 10 + 3 * c], state[k, 11 + 3 * c])
     H_grad[k] = grads[k, 0]
     n_grad[k] = wp.vec3(grads[k, 1], grads[k, 2], grads[k, 3])
 
@@ -556,10 +557,11 @@ def pack_vertex_adjoints(
 
 
 @functools.cache
-def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
+def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False, scatter: bool = False):
     """The adjoint of VNC-soft (Eq. (3)) with respect to the edge quantities (compiled once per variant), gathered per
     edge over the vertices whose ball reaches it: the same walk as :func:`soft_cells_kernel`, ``qb`` edges per thread
-    (every vertex record read serves them all), ``cull`` and ``moving`` as there."""
+    (every vertex record read serves them all), ``cull`` and ``moving`` as there. ``scatter``: the pairs also add the
+    query vertices' gradient through their weights (what :func:`vertex_gradient` gives from the forward's moments)."""
     vq = wp.types.vector(length=qb, dtype=wp.float32)
 
     @wp.kernel(enable_backward=False, module="unique", module_options={"fast_math": True})
@@ -586,12 +588,18 @@ def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
         part_b: wp.array2d(dtype=float),
         part_c: wp.array2d(dtype=wp.vec3),
         part_m: wp.array2d(dtype=wp.vec3),
+        length: wp.array(dtype=float),
+        vorder: wp.array(dtype=int),
+        x_grad: wp.array(dtype=wp.vec3),
     ):
         """Split ``s`` of the sums over the vertices (the sources, each within its own cut-off ``f_k d^2 >=
         gaussian_cutoff``; an edge's ball is the largest radius ``reach[j]`` of them, plus ``pad``) of the ``qb``
         consecutive sorted edges ``j = order[qb u + q]`` of thread ``u``: ``A = sum gN w``, ``B = sum gD w``,
         ``C = sum gS w`` and ``M = sum f w (gN alpha + gD + gS . n_j) (x_k - m_j)``; :func:`reduce_edge_grads` turns
-        them into gradients."""
+        them into gradients. With ``scatter``, vertex record ``i`` adds
+        ``2 ln2 L_j f w (gN alpha + gD + gS . n_j) (x_k - m_j)`` of its pairs to ``x_grad[vorder[i]]``
+        (:func:`kernels.vnc_terms.gaussian_gradient`: minus the midpoint's part; one add per record read, its ``qb``
+        edges summed first)."""
         s, u = wp.tid()
         t0 = u * qb
         g = t0 // size
@@ -604,6 +612,7 @@ def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
         my = vq()
         mz = vq()
         ea = vq()
+        lq = vq()
         ux = vq()
         uy = vq()
         uz = vq()
@@ -621,6 +630,8 @@ def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
                 my[q] = m[1]
                 mz[q] = m[2]
                 ea[q] = angle[j]
+                if wp.static(scatter):
+                    lq[q] = length[j]
                 ux[q] = n[0]
                 uy[q] = n[1]
                 uz[q] = n[2]
@@ -652,6 +663,7 @@ def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
             span = row_share(whole, s, ns, steps[1])
             for i in range(span[0], span[1]):
                 vp = load4(pos, i)
+                gv = wp.vec3(0.0)
                 for q in range(qb):
                     dx = vp[0] - mx[q]
                     dy = vp[1] - my[q]
@@ -670,6 +682,11 @@ def soft_edge_adjoint_kernel(qb: int, cull: bool, moving: bool = False):
                         Mx[q] += c * dx
                         My[q] += c * dy
                         Mz[q] += c * dz
+                        if wp.static(scatter):
+                            gv += (lq[q] * c) * wp.vec3(dx, dy, dz)
+                if wp.static(scatter):
+                    if wp.length_sq(gv) > 0.0:
+                        wp.atomic_add(x_grad, vorder[i], (2.0 * LN2) * gv)
         for q in range(qb):
             if t0 + q < count:
                 part_a[s, t0 + q] = A[q]

@@ -90,7 +90,7 @@ def test_failing_row_is_reported_not_raised(tmp_path):
 
 def test_breakdown_runs_and_reports_every_operator(tmp_path):
     """``python -m bench.breakdown`` on the CPU device writes one row per operator and scale, with finite wall
-    and host times (no timing is asserted; the per-kernel split exists on CUDA only)."""
+    and host times (no timing is asserted)."""
     from bench import breakdown
 
     out = tmp_path / "breakdown.json"
@@ -101,6 +101,27 @@ def test_breakdown_runs_and_reports_every_operator(tmp_path):
     assert [(r["op"], r["tau"]) for r in doc["rows"]] == [("soft", "2"), ("soft", "diag/2"), ("hard", "2"),
                                                             ("hard", "diag/2"), ("curve", "16 scales")]
     assert all(math.isfinite(r["wall_ms"]) and r["wall_ms"] > 0 and math.isfinite(r["host_ms"]) for r in doc["rows"])
+
+
+def test_breakdown_times_the_torch_forward_and_backward(tmp_path):
+    """``python -m bench.breakdown --ops torch`` on the CPU device times the torch op's VNC-soft forward + backward
+    with every kernel launched (no graph replay), with the vertices' part from the forward's moments and from the edge
+    adjoint (``--vertex-scatter``): one row per scale, with finite wall and host times and its kernels (each launch's
+    thread CPU time on the CPU device), the vertex-gradient pass only where the moments are used."""
+    from bench import breakdown
+
+    out = tmp_path / "breakdown.json"
+    for scatter in ("", "cpu"):
+        assert breakdown.main(["--device", "cpu", "--mesh", str(mesh_path("spot_lowres.obj")), "--taus", "2", "--ops",
+                               "torch", "--repeats", "1", "--no-graphs", "--vertex-scatter", scatter,
+                               "--out", str(out)]) == 0
+        rows = json.loads(out.read_text())["rows"]
+        assert [(r["op"], r["tau"]) for r in rows] == [("torch", "2")]
+        assert math.isfinite(rows[0]["wall_ms"]) and rows[0]["wall_ms"] > 0 and math.isfinite(rows[0]["host_ms"])
+        kernels = rows[0]["kernels"]
+        assert math.isfinite(rows[0]["device_ms"]) and kernels["soft_edge_adjoint"]["count"] == 1
+        # the vertices' part: from the forward's moments, or added by the edge adjoint
+        assert ("vertex_gradient" in kernels) == (scatter == "")
 
 
 def test_tune_times_every_setting(tmp_path):

@@ -25,7 +25,7 @@ FLOW_MODULES = ["remesh.py", "sdf.py", "flow.py", "reduce.py", "vnc_scale.py", "
 
 #: Adjoint kernels: they scatter gradients (for ``wp.Tape`` / torch autograd) and the flow, which computes none,
 #: never runs them.
-ADJOINTS = {"ball_adjoint_cells", "soft_backward", "ball_backward"}
+ADJOINTS = {"ball_adjoint_cells", "soft_backward", "ball_backward", "soft_edge_adjoint_kernel", "soft_edge_adjoint"}
 
 #: Float atomic adds that are exact whatever the order: counts of integer value (below 2^24) kept in a float array.
 EXACT_FLOAT_COUNTS = {("vnc_grid.py", "point_stats", "bad_x"), ("vnc_grid.py", "point_stats", "bad_r")}

@@ -417,11 +417,12 @@ def test_torch_gradient_after_a_plain_call_of_the_same_plan(device):
 
 @pytest.mark.parametrize("per_thread", [1, 4])
 @pytest.mark.parametrize("per_vertex", [False, True])
-@pytest.mark.parametrize("op", ["soft", "hard"])
-def test_torch_gradient_with_the_cuda_launch_shape(op, per_vertex, per_thread):
+@pytest.mark.parametrize("op, scatter", [("soft", ()), ("soft", ("cpu",)), ("hard", ())])
+def test_torch_gradient_with_the_cuda_launch_shape(op, scatter, per_vertex, per_thread):
     """On the CPU with CUDA's launch shape (the culled row walk, warp-sized groups sharing boxes, rows split over
     threads, one or four queries per thread as in a busy traversal; graph replay), the torch ops' gradients
-    (VNC-soft's edge adjoint walks the culled rows too, one or four edges per thread) equal the float64 dense
+    (VNC-soft's edge adjoint walks the culled rows too, one or four edges per thread; the query vertices' part from
+    the forward's moments, or added by the edge adjoint's pairs: ``Tuning.vertex_scatter``) equal the float64 dense
     references' to 1e-5 of their largest entry, at moved positions too."""
     torch_op, dense = (vnc_soft, dense_soft) if op == "soft" else (vnc_hard, dense_hard)
     mesh = _mesh(7)
@@ -429,7 +430,8 @@ def test_torch_gradient_with_the_cuda_launch_shape(op, per_vertex, per_thread):
     wH, wn = _objective_weights(V, 11)
     rng = np.random.default_rng(12)
     tau = 0.6 * (rng.uniform(0.6, 1.4, V) if per_vertex else 1.0)
-    shape = Tuning(replay=("cpu", "cuda"), cull_cpu=True, group=32, splits=3, per_thread=per_thread)
+    shape = Tuning(replay=("cpu", "cuda"), cull_cpu=True, group=32, splits=3, per_thread=per_thread,
+                   vertex_scatter=scatter)
     for k in range(4):
         x0 = mesh.vertices.astype(np.float64) * (1.0 + 0.01 * k)
         v = torch.tensor(x0, dtype=torch.float32, requires_grad=True)

@@ -469,11 +469,12 @@ class Engine:
         return bounds_of
 
     def _soft_moving(self, x: wp.array | _Moving, tau, kappa: float, strategy: str, packed: int = 0, *,
-                     copy: bool = True) -> list | tuple[list, bool]:
+                     grad: bool = False, copy: bool = True) -> list | tuple[list, bool]:
         """VNC-soft at positions ``x`` on the device through a plan: ``[H, n]``, or (``packed``: 9 or 24) one
         (V, packed) array of ``(H, n, N, D, S)`` per vertex (the torch op's outputs and what its backward pass reads),
-        and in a row of 24 the moments of the vertex adjoint (:func:`kernels.vnc_sums.reduce_moments`). ``x`` may be
-        the plan itself (:meth:`soft_plan`), its positions written by the caller; ``copy``: as for :meth:`_call`."""
+        and in a row of 24 the moments of the vertex adjoint (:func:`kernels.vnc_sums.reduce_moments`). ``grad``: a
+        backward pass follows (it reuses what this call leaves). ``x`` may be the plan itself (:meth:`soft_plan`), its
+        positions written by the caller; ``copy``: as for :meth:`_call`."""
         t = host_scalar(tau, "tau")
         if isinstance(x, _Moving):
             plan = x
@@ -489,7 +490,7 @@ class Engine:
                 return outputs[3:]
             # only the torch op's (packed) calls leave what a backward pass reuses: a replayed call runs none of this,
             # so what an unpacked call of the same plan prepared must not stand in for it
-            plan.prep = (f, prep, outputs[:3]) if packed > 9 else None
+            plan.prep = (f, prep, outputs[:3]) if grad else None
             out = _plan.empty(None if fresh else pool, self.device, (self.num_vertices, packed), wp.float32)
             wp.launch(_s.pack_soft_state, dim=self.num_vertices,
                       inputs=[outputs[3], outputs[4], *outputs[:3], prep[-1] if packed > 9 else self._unused_vec3()],
@@ -497,9 +498,9 @@ class Engine:
             return [out]
 
         self._soft_token = None
-        outs, fresh = self._call(("soft-x", plan, packed), "soft", run, copy=False)
+        outs, fresh = self._call(("soft-x", plan, packed, grad), "soft", run, copy=False)
         plan.fetch(copied=not fresh)
-        self._soft_token = plan.token = _Token(plan, tau, kappa) if packed > 9 else None
+        self._soft_token = plan.token = _Token(plan, tau, kappa) if grad else None
         if copy:
             return outs if fresh else [wp.clone(o) for o in outs]
         return outs, fresh
@@ -535,7 +536,7 @@ class Engine:
         b = bounds or self.host_bounds(x, radius_stats(tau)) or _plan.bounds(x, tau_arr)
         concrete = _plan.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0], self.tuning)
         backward, prep = self._soft_cells(x, tau_arr, kappa, f, outputs, b, concrete, pool, bounds is not None,
-                                          moments or rg)
+                                          moments or (rg and not self.tuning.scatter_on(device.is_cuda)))
         return outputs, f, backward, (tau_arr, *prep)
 
     def _midpoint_bvh(self, f: EdgeFields) -> wp.Bvh:
@@ -621,14 +622,16 @@ class Engine:
     def _soft_adjoint(self, x, tau_arr, kappa, f, moments, num, den, nsum, H_grad, n_grad, x_grad, edge_grads, b,
                       strategy, pool, moving: bool) -> None:
         """The adjoint of the grid (or dense) VNC-soft over the forward's pairs: ``x_grad`` += the vertices' part from
-        the forward's ``moments`` in one pass over the vertices (:func:`kernels.vnc_sums.vertex_gradient`),
-        ``edge_grads`` (mid, length, angle, normal) += the edges' (:func:`kernels.vnc_sums.soft_edge_adjoint_kernel`,
-        a gather per edge over the vertices that reach it)."""
+        the forward's ``moments`` in one pass over the vertices (:func:`kernels.vnc_sums.vertex_gradient`; None: added
+        by the edge adjoint's pairs, ``Tuning.vertex_scatter``), ``edge_grads`` (mid, length, angle, normal) += the
+        edges' (:func:`kernels.vnc_sums.soft_edge_adjoint_kernel`, a gather per edge over the vertices that reach
+        it)."""
         device = self.device
         t = self.tuning
         V, E = x.shape[0], f.mid.shape[0]
-        wp.launch(_s.vertex_gradient, dim=V, inputs=[tau_arr, kappa, num, den, nsum, moments, H_grad, n_grad],
-                  outputs=[x_grad], device=device, record_tape=False)
+        if moments is not None:
+            wp.launch(_s.vertex_gradient, dim=V, inputs=[tau_arr, kappa, num, den, nsum, moments, H_grad, n_grad],
+                      outputs=[x_grad], device=device, record_tape=False)
         # edges gather over the vertices whose ball (radius tau_k) reaches their midpoint: each edge's reach is the
         # largest radius, taken on the device (a plan's bounds may be older than the radii)
         top = _plan.zeros(pool, device, 1, wp.float32)
@@ -643,10 +646,11 @@ class Engine:
                   outputs=[vpos, vcoef, vgs], device=device, record_tape=False)
         shape = (egroups.splits, egroups.padded)
         eparts = [_plan.empty(pool, device, shape, dt) for dt in (wp.float32, wp.float32, wp.vec3, wp.vec3)]
-        kernel = _s.soft_edge_adjoint_kernel(egroups.per_thread, t.cull_on(device.is_cuda), moving)
+        kernel = _s.soft_edge_adjoint_kernel(egroups.per_thread, t.cull_on(device.is_cuda), moving, moments is None)
         wp.launch(kernel, dim=egroups.dim,
                   inputs=[f.mid, f.angle, f.normal, reach, kappa, *egroups.args(vcells), vpos, vcoef, vgs],
-                  outputs=eparts, device=device, record_tape=False, block_dim=t.block_dim)
+                  outputs=[*eparts, f.length, vcells.order, x_grad], device=device, record_tape=False,
+                  block_dim=t.block_dim)
         mid_g, length_g, angle_g, normal_g = edge_grads
         wp.launch(_s.reduce_edge_grads, dim=E, inputs=[egroups.order, f.length, f.angle, f.normal, *eparts],
                   outputs=[angle_g, length_g, normal_g, mid_g], device=device, record_tape=False)
@@ -668,7 +672,8 @@ class Engine:
     def soft_state(self, x: wp.array | _Moving, tau, kappa: float, *, grad: bool = True,
                    copy: bool = True) -> tuple[wp.array, object] | tuple[wp.array, object, bool]:
         """VNC-soft at device positions ``x`` for a differentiable op: ``(state, token)``, ``state`` a (V, 24) float32
-        array of the caller's own, ``(H, n, N, D, S)`` and the 15 moments of the vertex adjoint per vertex, for
+        array of the caller's own, ``(H, n, N, D, S)`` and the 15 moments of the vertex adjoint per vertex (a (V, 9)
+        array of the sums where the backward pass adds the vertices' part itself, ``Tuning.vertex_scatter``), for
         :meth:`soft_gradient` with ``token`` (``grad=False``: a (V, 9) array of the sums only, and no token: for a
         forward pass that no backward pass follows). ``x`` may be a :meth:`soft_plan` holding the positions.
         ``copy=False``: ``(state, token, owned)``, where a state that is not ``owned`` belongs to a graph (copy it out
@@ -676,7 +681,8 @@ class Engine:
         kappa = check_kappa(kappa, soft=True)
         if not isinstance(x, _Moving):
             x = self.positions(x)
-        outs = self._soft_moving(x, tau, kappa, "auto", packed=24 if grad else 9, copy=copy)
+        moments = grad and not self.tuning.scatter_on(self.device.is_cuda)
+        outs = self._soft_moving(x, tau, kappa, "auto", packed=24 if moments else 9, grad=grad, copy=copy)
         if copy:
             return outs[0], self._soft_token
         return outs[0][0], self._soft_token, outs[1]
@@ -687,10 +693,11 @@ class Engine:
         ``(state, token)``, for the upstream gradients ``grads`` ((V, 4) float32: ``dL/dH``, ``dL/dn``; None: the
         caller wrote them into :attr:`soft_grads`): (V,) vec3, an array of the caller's own (``copy=False``:
         ``(gx, owned)`` as for :meth:`soft_state`). The vertices' part comes from the moments of the forward call
-        (one pass over the vertices), the edges' from a gather over the plan of the forward call, then the edge fields'
-        adjoint, replayed from a graph; when no VNC-soft call ran on the engine since (its token is still ``token``),
-        on the edge fields, sums and moments that call left on the device, else on those of ``x`` and ``state``
-        (either may be a function giving the array: it is called only then)."""
+        (one pass over the vertices; or from the edges' pairs, ``Tuning.vertex_scatter``), the edges' from a gather
+        over the plan of the forward call, then the edge fields' adjoint, replayed from a graph; when no VNC-soft call
+        ran on the engine since (its token is still ``token``), on the edge fields, sums and moments that call left on
+        the device, else on those of ``x`` and ``state`` (either may be a function giving the array: it is called only
+        then)."""
         replayed = self._replayed_gradient(token, tau, kappa, grads)
         if replayed is not None:
             return wp.clone(replayed) if copy else (replayed, False)
@@ -732,10 +739,11 @@ class Engine:
 
             outs = self._call(("soft-grad-reuse", plan), "soft-grad", run, copy=copy)
         else:
-            if self._state is None:
-                self._state = wp.empty((V, 24), dtype=wp.float32, device=self.device)
+            held = state() if callable(state) else state
+            if self._state is None or self._state.shape != held.shape:
+                self._state = wp.empty(held.shape, dtype=wp.float32, device=self.device)
             state_in = self._state
-            wp.copy(state_in, state() if callable(state) else state)
+            wp.copy(state_in, held)
 
             def run(pool, fresh):
                 device = self.device
@@ -743,7 +751,7 @@ class Engine:
                 f = self.fields(plan.x, pool=pool)
                 num, den, H_grad = (_plan.empty(pool, device, V, wp.float32) for _ in range(3))
                 nsum, n_grad = (_plan.empty(pool, device, V, wp.vec3) for _ in range(2))
-                moments = _plan.empty(pool, device, (5, V), wp.vec3)
+                moments = _plan.empty(pool, device, (5, V), wp.vec3) if state_in.shape[1] > 9 else None
                 wp.launch(_s.unpack_soft_state, dim=V, inputs=[state_in, grads_in],
                           outputs=[num, den, nsum, moments, H_grad, n_grad], device=device)
                 return adjoint(pool, fresh, f, (tau_arr, moments), (num, den, nsum), H_grad, n_grad)

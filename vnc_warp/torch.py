@@ -53,7 +53,8 @@ def _owned(owner, name: str, arr: wp.array, owned: bool) -> torch.Tensor:
 
 
 class _Held:
-    """The (V, 24) state of a forward pass for its backward pass (:meth:`Engine.hold`): a view of the graph's output
+    """The (V, 24) state of a forward pass for its backward pass ((V, 9) where the backward pass adds the vertices'
+    part itself, ``Tuning.vertex_scatter``; :meth:`Engine.hold`): a view of the graph's output
     until the engine's next VNC-soft call, then a copy of it; None once a backward pass has read what the forward
     pass left on the device (that pass may run again, ``retain_graph``: it then prepares the state again)."""
 

@@ -68,6 +68,10 @@ class Tuning:
             4-8, a quarter of the radius from 16), so half a piece, not half the longest edge, pads the balls.
         cpu_pieces: on the CPU device, the ``(piece, cell)`` sizes in mean edge lengths of the pieces of a mesh's own
             edges kept for every radius (as trimesh keeps an R-tree); None sorts them per call.
+        vertex_scatter: device kinds on which VNC-soft's backward pass adds each query vertex's gradient through its
+            weights from the edge adjoint's pairs (an add per vertex record a thread reads) rather than from 15
+            moments per vertex that the forward pass accumulates (on the CPU, icosphere(4) at 16 mean edge lengths:
+            forward with gradients 124 -> 75 ms, edge adjoint 99 -> 125 ms; on CUDA not yet timed: atomics).
         replay: device kinds whose repeated calls replay captured graphs; None follows
             :func:`vnc_warp.set_graph_replay` (CUDA by default: on the CPU kernel time dominates).
         max_graphs: captured graphs (and moving-position plans) an engine keeps, least recently used first out.
@@ -107,6 +111,7 @@ class Tuning:
     piece_min: float = 1.5
     piece_max: float = 2.0
     cpu_pieces: tuple[float, float] | None = (2.0, 3.0)
+    vertex_scatter: tuple[str, ...] = ("cpu",)
     replay: tuple[str, ...] | None = None
     max_graphs: int = 8
     pool_limit: int = 128
@@ -118,6 +123,8 @@ class Tuning:
             raise ValueError("Tuning: qb, block_dim, chunk and min_run must be positive")
         if self.replay is not None and not set(self.replay) <= {"cuda", "cpu"}:
             raise ValueError(f"Tuning.replay: device kinds are 'cuda' and 'cpu', got {self.replay}")
+        if not set(self.vertex_scatter) <= {"cuda", "cpu"}:
+            raise ValueError(f"Tuning.vertex_scatter: device kinds are 'cuda' and 'cpu', got {self.vertex_scatter}")
         if self.group is not None and not 1 <= self.group <= 32:
             raise ValueError(f"Tuning.group: 1 to 32 threads, got {self.group}")
 
@@ -128,6 +135,10 @@ class Tuning:
     def cull_on(self, cuda: bool) -> bool:
         """Whether one-query threads walk culled rows on a device of this kind."""
         return self.cull and (cuda or self.cull_cpu)
+
+    def scatter_on(self, cuda: bool) -> bool:
+        """Whether VNC-soft's backward pass adds the query vertices' gradient from the edge adjoint's pairs."""
+        return ("cuda" if cuda else "cpu") in self.vertex_scatter
 
     def chunk_reach(self, cuda: bool) -> float:
         return self.chunk_reach_cuda if cuda else self.chunk_reach_cpu
