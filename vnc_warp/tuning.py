@@ -71,7 +71,8 @@ class Tuning:
         vertex_scatter: device kinds on which VNC-soft's backward pass adds each query vertex's gradient through its
             weights from the edge adjoint's pairs (an add per vertex record a thread reads) rather than from 15
             moments per vertex that the forward pass accumulates (on the CPU, icosphere(4) at 16 mean edge lengths:
-            forward with gradients 124 -> 75 ms, edge adjoint 99 -> 125 ms; on CUDA not yet timed: atomics).
+            forward with gradients 124 -> 75 ms, edge adjoint 99 -> 125 ms; on one H200 the atomics make the edge
+            adjoint 12x slower, 13.5 -> 160 ms on a 50k mesh at diag/2: docs/results/TUNING.md).
         replay: device kinds whose repeated calls replay captured graphs; None follows
             :func:`vnc_warp.set_graph_replay` (CUDA by default: on the CPU kernel time dominates).
         max_graphs: captured graphs (and moving-position plans) an engine keeps, least recently used first out.
