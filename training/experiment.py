@@ -362,8 +362,8 @@ def _gpu() -> ExperimentConfig:
     out; every shape flowed by VNC-Flow to 8 stages at 6,000 faces, the distilled body (human_man) to 32.
     Models 384 wide, 512 x 32 latents, 2 + 6 layers (~20M parameters), bf16; C-VAE-I and the VAE 380 s of
     training each in all, the first 190 s shared (``cvae1_fork`` = 0.5: from scratch in 300 s C-VAE-I underfit,
-    its t = 1 bodies in pieces, in the fifth H200 run), C-VAE-II 300 s (330 s gave 1.3-1.9x the floor); 256^3 marching cubes, CD on 100k points,
-    EMD on 4,096.
+    its t = 1 bodies in pieces, in the fifth H200 run), C-VAE-II 300 s (330 s gave 1.3-1.9x the floor); 256^3
+    marching cubes, CD on 100k points, EMD on 4,096.
     """
     big = dict(batch=32, surface=4096, queries=8192, workers=8, eik_queries=512, log_every=20, ckpt_every=200,
                on_surface=1024, **_RECIPE)
