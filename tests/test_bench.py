@@ -175,3 +175,21 @@ def test_out_folder_and_baseline_rows(tmp_path):
     assert [round(r.extra["vs_baseline"], 3) for r in b.rows] == [1.04, 0.9]
     goal = next(g for g in bench.goals(b) if g["goal"].startswith("Every row of the baseline"))
     assert goal["met"] is False and goal["measured"] == 1 and "slow[auto] 1.040x" in goal["detail"]
+
+
+def test_last_stage_moment_ellipsoid_recovers_an_ellipsoid():
+    """bench.last_stage's oracle ellipsoid (from the solid's second moments, scaled to the area) of an exact
+    ellipsoid, semi-axes 0.3 / 0.6 / 0.9 rotated and moved far from the origin, is that ellipsoid: its vertices
+    satisfy the rotated quadric's equation to 1 %."""
+    import trimesh
+
+    from bench.last_stage import _moment_ellipsoid
+
+    axes = np.array([0.3, 0.6, 0.9])
+    rot = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, 0.5])[:3, :3]
+    centre = np.array([40.0, -7.0, 3.0])
+    e = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    e.vertices = (e.vertices * axes) @ rot.T + centre
+    fit = _moment_ellipsoid(e)
+    local = (np.asarray(fit.vertices) - centre) @ rot / axes
+    assert np.abs(np.linalg.norm(local, axis=1) - 1.0).max() < 0.01
