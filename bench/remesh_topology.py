@@ -8,6 +8,11 @@ the input's Euler characteristic, the Euler characteristics of the first grid's 
 signed distance, and of its negation: the two ways of resolving ambiguous cube faces), the result's, the second
 remesh's path and why, and the ``S`` change. Writes ``OUT/remesh_topology.json``.
 
+With ``--force-level-set`` the second remesh takes the marching-cubes path whatever the surface's level set says
+(what a stage boundary with a contact join or a self-intersection does to the rest of the surface), and each row
+also gives the edge-length spread (std / mean) before and after: ``S`` grows with it (Eq. (3) is a length-weighted
+mean of dihedral angles), so a change of ``S`` that follows it is the tessellation's, not lost detail.
+
     python -m bench.remesh_topology --names boot.obj sword.obj --device cuda --out /tmp/rt
 """
 
@@ -43,7 +48,14 @@ def level_set_eulers(remesher, mesh) -> tuple[int, int]:
     return ls.euler, (ls.joined().euler if hasattr(ls, "joined") else None)
 
 
-def one(path: str, faces: int | None, device: str, method: str) -> dict:
+def edge_spread(mesh) -> float:
+    """Standard deviation over mean of the edge lengths of ``mesh``."""
+    e = mesh.topology.edges
+    length = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1)
+    return float(length.std() / length.mean())
+
+
+def one(path: str, faces: int | None, device: str, method: str, *, force_level_set: bool = False) -> dict:
     import warp as wp
 
     from vnc_warp.flow import _as_saved, total_complexity
@@ -67,8 +79,17 @@ def one(path: str, faces: int | None, device: str, method: str) -> dict:
         S0 = total_complexity(m0, taus, device=device)
         e_sep, e_join = level_set_eulers(remesher, m0)
         row.update(euler_grid_separated=e_sep, euler_grid_joined=e_join)
+        if force_level_set:
+            disagreement, calls = remesher._disagreement, []
+
+            def forced(*a, **kw):  # the first check of this call only; the topology passes after it as usual
+                calls.append(1)
+                return "forced (--force-level-set)" if len(calls) == 1 else disagreement(*a, **kw)
+
+            remesher._disagreement = forced
         t0 = time.perf_counter()
         m1, rep1 = remesher(positions=wp.array(m0.local_vertices, dtype=wp.vec3, device=device))
+        row.update(edge_spread0=edge_spread(m0), edge_spread1=edge_spread(_as_saved(m1)))
         row.update(again_seconds=time.perf_counter() - t0, again_method=rep1.method, again_why=rep1.why_level_set,
                    euler_again=rep1.euler)
         S1 = total_complexity(m1, taus, device=device)
@@ -86,6 +107,8 @@ def main(argv=None) -> int:
     ap.add_argument("--names", nargs="*", default=["boot.obj", "sword.obj"])
     ap.add_argument("--methods", nargs="*", default=["auto"], help="marching cubes: auto, warp, skimage")
     ap.add_argument("--max-faces", type=int, default=50000, help="cap on each input's face count (0: none)")
+    ap.add_argument("--force-level-set", action="store_true",
+                    help="the second remesh takes the marching-cubes path (see above)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -97,7 +120,7 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     rows = []
     header = (f"{'mesh':<14} {'mc':<8} {'faces':>6} {'h':>9} {'euler in':>8} {'grid sep/join':>13} {'first':>5} "
-              f"{'again':>5} {'paths':<17} {'dS one remesh':>13} {'s':>6}  why")
+              f"{'again':>5} {'paths':<17} {'dS one remesh':>13} {'s':>6} {'edge spread':<11}  why")
     print(header)
     for name in args.names:
         path = os.path.join(args.meshes, name)
@@ -108,7 +131,7 @@ def main(argv=None) -> int:
         for method in args.methods:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                row = one(path, faces, device, method)
+                row = one(path, faces, device, method, force_level_set=args.force_level_set)
             rows.append(row)
             if "error" in row and "dS" not in row:
                 print(f"{name:<14} {method:<8} error: {row['error']}")
@@ -116,7 +139,8 @@ def main(argv=None) -> int:
             print(f"{name:<14} {method:<8} {row['faces']:>6} {row['spacing']:>9.3g} {row['euler_input']:>8} "
                   f"{row['euler_grid_separated']:>6}/{str(row['euler_grid_joined']):<6} {row['euler_first']:>5} "
                   f"{row['euler_again']:>5} {row['first_method'] + '/' + row['again_method']:<17} {100 * row['dS']:>+12.2f}% "
-                  f"{row['first_seconds'] + row['again_seconds']:>6.1f}  {row['again_why'] or ''}")
+                  f"{row['first_seconds'] + row['again_seconds']:>6.1f} {row['edge_spread0']:>5.3f}>{row['edge_spread1']:<5.3f}"
+                  f"  {row['again_why'] or ''}")
     out = os.path.join(args.out, "remesh_topology.json")
     with open(out, "w") as fh:
         json.dump({"device": device, "rows": rows}, fh, indent=1)

@@ -193,3 +193,27 @@ def test_last_stage_moment_ellipsoid_recovers_an_ellipsoid():
     fit = _moment_ellipsoid(e)
     local = (np.asarray(fit.vertices) - centre) @ rot / axes
     assert np.abs(np.linalg.norm(local, axis=1) - 1.0).max() < 0.01
+
+
+def test_remesh_topology_forces_the_level_set_path(tmp_path):
+    """``bench.remesh_topology --force-level-set`` sends the second remesh of a small body down the marching-cubes
+    path (the plain run re-tessellates it in place) and reports the S change and the edge-length spread of both
+    results; the first remesh (the same in both runs) gives the same spread."""
+    import trimesh
+    from capsules import BODY, capsules
+
+    from bench import remesh_topology
+
+    trimesh.Trimesh(*capsules(BODY, nodes=64), process=False).export(tmp_path / "body.obj")
+    rows = {}
+    for flag in ([], ["--force-level-set"]):
+        out = tmp_path / ("forced" if flag else "plain")
+        remesh_topology.main(["--meshes", str(tmp_path), "--names", "body.obj", "--max-faces", "2000",
+                              "--device", "cpu", "--out", str(out), *flag])
+        rows[bool(flag)] = json.loads((out / "remesh_topology.json").read_text())["rows"][0]
+    assert rows[False]["again_method"] == "surface" and rows[True]["again_method"] == "level_set"
+    assert rows[True]["again_why"].startswith("forced")
+    for row in rows.values():
+        assert math.isfinite(row["dS"]) and row["euler_again"] == 2
+        assert 0.0 < row["edge_spread0"] < 1.0 and 0.0 < row["edge_spread1"] < 1.0
+    assert rows[True]["edge_spread0"] == pytest.approx(rows[False]["edge_spread0"], rel=1e-6)
