@@ -7,8 +7,8 @@
 For every mesh (``--all``: every closed mesh in the folder; ``--names``: those) it runs VNC-Flow and measures
 
 * **t control**: the largest ``|t_i - (1 - i/N)|`` over the recorded stages, over all of them and over those that
-  are not a documented exception (the last stage; a stage whose remesh changed the topology), and whether any
-  two consecutive stages hold the same mesh;
+  are not a documented exception (the last stage; a stage whose remesh changed the topology), and which stages
+  hold the previous stage's state (its very vertices, or no step of Eq. (5) taken: its re-tessellation);
 * **thinning**: the smallest stage-to-stage ratio of the 5th-percentile relative thickness (4096 area-weighted
   rays along inward normals, over the radius of the sphere of equal area);
 * **remesh alone**: the change of the total VNC-AUC ``S`` (16 scales of stage 0) when stage 0 is remeshed once
@@ -103,8 +103,11 @@ def summarize(traj, n: int) -> dict:
     dev = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:]]
     ruled = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:] if _exception(r, n) is None]
     ratios = [r["thickness_ratio"] for r in recs[1:] if r.get("thickness_ratio")]
-    same = [i for i, (m, prev) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1]), start=1)
-            if m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices)]
+    # a stage holds the previous stage's state when its vertices are that state's, or when it took no step of
+    # Eq. (5): then it is that state re-tessellated by the remesh between stages, new vertices, the same shape
+    same = [i for i, (m, prev, r) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1], recs[1:]), start=1)
+            if r.get("iterations") == 0
+            or (m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices))]
     return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
             "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
             "min_thickness_ratio": min(ratios, default=None), "thickness": [r["thickness"] for r in recs],
@@ -231,11 +234,12 @@ def _fmt(x, spec=".3f"):
 def summary_table(runs: list, title: str) -> list[str]:
     lines = [f"#### {title}", "",
              "| mesh | faces | max \\|t_i - (1 - i/N)\\| (exceptions out) | all stages | exceptions | smallest "
-             "thickness ratio | S change, one remesh | seconds | remesh s | stage s | final t |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "thickness ratio | S change, one remesh | seconds | remesh s | stage s | final t | stages holding the previous "
+             "state |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         if "error" in r:
-            lines.append(f"| {r['mesh']} | | error: {r['error']} | | | | | | | | |")
+            lines.append(f"| {r['mesh']} | | error: {r['error']} | | | | | | | | | |")
             continue
         p = r["parts"]
         rem = sum(v for k, v in p.items() if k.startswith("remesh."))
@@ -244,7 +248,8 @@ def summary_table(runs: list, title: str) -> list[str]:
         ra = r.get("remesh_alone") or {}
         lines.append(f"| {r['mesh']} | {r['faces']:,} | {_fmt(r['max_dt_ruled'])} | {_fmt(r['max_dt'])} | {exc} | "
                      f"{_fmt(r['min_thickness_ratio'])} | {_fmt(100 * ra['dS'], '+.2f') + ' %' if ra else ''} | "
-                     f"{r['seconds']:.1f} | {rem:.1f} | {stg:.1f} | {r['final_t']:.3f} |")
+                     f"{r['seconds']:.1f} | {rem:.1f} | {stg:.1f} | {r['final_t']:.3f} | "
+                     f"{', '.join(map(str, r['same_mesh_stages']))} |")
     return lines
 
 

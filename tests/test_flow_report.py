@@ -55,3 +55,18 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
     assert [r["mesh"] for r in report["runs"]] == ["shape0.obj"]
     assert [r["mesh"] for r in report["skipped"]] == ["shape1.obj"]
     assert "Skipped (time budget): shape1.obj" in (spent / "flow_report.md").read_text()
+
+
+def test_a_stage_without_a_step_holds_the_previous_state():
+    """summarize lists a stage that took no step of Eq. (5) (its mesh is the previous state re-tessellated, new
+    vertices) as holding the previous stage's state, beside a stage whose vertices are the previous stage's; a
+    stage that stepped is not listed."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    meshes = [SimpleNamespace(num_vertices=5, vertices=rng.random((5, 3))) for _ in range(4)]
+    meshes[3] = SimpleNamespace(num_vertices=5, vertices=meshes[2].vertices.copy())
+    recs = [{"index": i, "t": 1.0 - i / 4, "status": "budget", "thickness": 0.5, "thickness_ratio": 1.0,
+             "iterations": it} for i, it in enumerate([0, 4, 0, 3])]
+    traj = SimpleNamespace(records=recs, meshes=meshes, t=np.array([r["t"] for r in recs]))
+    assert flow_report.summarize(traj, 4)["same_mesh_stages"] == [2, 3]
