@@ -18,7 +18,11 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   from 1.0 to 3.7 ``S_init`` within stage 1 and the state no longer remeshed. (Adaptive scales only: the
   fixed-scale ablations of Fig. 7 keep the plain step.) The rise must also exceed 5 % of ``S_init``: near a
   sphere ``S`` is a few percent of ``S_init`` and noise of 1 % of an edge length moves it by half of itself, so a
-  test against ``S`` alone halved the step of every late stage until it stalled.
+  test against ``S`` alone halved the step of every late stage until it stalled. A run that climbs more than the
+  stage's tolerance above its best ``S`` after ``S`` fell below the segment's start has passed the minimum of
+  Eq. (5) at this step and is backtracked too: on hammer.obj at 12,000 faces (CPU, stage 16) ``S`` fell from t 0.559
+  to 0.506 in 17 steps and then climbed to 0.67 over 100 steps at full step, where half the step reached 0.504 and a
+  quarter 0.5005 (the stage took 255 iterations and a remesh, now 85).
 * **Sub-stages**: the flow spends at most ``substage_budget`` (1/32 of ``S_init``) between two remeshes; a
   stage with a larger budget (N < 32) is flowed as that many sub-stages, each remeshed and given its adaptive
   scales, and records the last (its record lists them in ``substages``), so a trajectory of N = 8 holds states of
@@ -112,6 +116,9 @@ _RISE = 0.05
 # itself under noise of 1 % of an edge length (fandisk at 3,000 faces, t = 0.063: 0.063 -> 0.100), so a rise
 # measured against S alone halved the step of every late stage until it stalled (issue 21, H200 at c2eac1e)
 _RISE_INIT = 0.05
+# A run of steps that climbs more than this many stage tolerances above the stage's best S, after S fell below its
+# segment's start, has passed the minimum of Eq. (5) at this step size: it is backtracked (issue 21, see _run_stage)
+_CLIMB = 1.0
 # A stage where Eq. (5) stops lowering S short of its window (max_iters or converged: a dumbbell whose neck fattened
 # into a waist, at t 0.75, 3000 faces: every run of steps from there raised S, whatever the step, the scales (phi 1/8
 # to 1, tau_min, tau_max) or the thin-part rule; hammer, mushroom and nefertiti on the H200) went on
@@ -918,7 +925,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 if descent:
                     wp.copy(part_a, stepper.part)
                 S_a, it_a = S_b, it
-            elif descent and S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init:
+            elif descent and (S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init
+                              or (S_a < S_seg and S_b > S_a + _CLIMB * tol)):
                 # not a descent: the run of steps since the best state raised S above the segment's start (beyond
                 # the re-smoothing of a remeshed state): go back to the best state and halve the step
                 stepper.backtrack(x_a, part_a)
