@@ -452,8 +452,9 @@ def test_operator_arguments_are_checked(device):
             vw.scale_curve(mesh, [0.2, 0.3], positions=x, strategy=strategy)
     tau = np.full(mesh.num_vertices, 0.3, np.float32)
     tau[5] = 0.0
-    with pytest.raises(ValueError, match="not positive and finite"):
-        vw.vnc_soft(mesh, wp.array(tau, dtype=wp.float32, device=device), device=device)
+    for strategy in vw.STRATEGIES:
+        with pytest.raises(ValueError, match="not positive and finite"):
+            vw.vnc_soft(mesh, wp.array(tau, dtype=wp.float32, device=device), device=device, strategy=strategy)
 
 
 # --- commands: one line and exit code 2 -----------------------------------------------------------------------

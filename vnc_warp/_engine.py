@@ -372,10 +372,12 @@ class Engine:
                   device=device)
         return f
 
-    def _check_values(self, x: wp.array, radius: wp.array) -> None:
+    def _check_values(self, x: wp.array, radius: wp.array, given=None) -> None:
         """Refuse NaN or infinite positions and scales that are not positive and finite, given on the device (the grid
-        traversals check them while reading their bounds; the BVH one calls this)."""
-        if not self.own(x) or isinstance(radius, wp.array):
+        traversals check them while reading their bounds; the BVH one calls this). ``given``: the scales as the caller
+        gave them (default ``radius``): scales given on the host were checked there, and the mesh's own vertices when
+        it was built, so only values given on the device cost a reduction and a read back."""
+        if not self.own(x) or isinstance(radius if given is None else given, wp.array):
             _plan.bounds(x, radius)
 
     def positions(self, positions) -> wp.array:
@@ -531,7 +533,7 @@ class Engine:
         else:
             outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
         if strategy == "bvh":
-            self._check_values(x, tau_arr)
+            self._check_values(x, tau_arr, tau)
             return outputs, f, self._soft_bvh(x, tau_arr, kappa, f, outputs), None
         b = bounds or self.host_bounds(x, radius_stats(tau)) or _plan.bounds(x, tau_arr)
         concrete = _plan.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0], self.tuning)
