@@ -455,6 +455,8 @@ def test_operator_arguments_are_checked(device):
     for strategy in vw.STRATEGIES:
         with pytest.raises(ValueError, match="not positive and finite"):
             vw.vnc_soft(mesh, wp.array(tau, dtype=wp.float32, device=device), device=device, strategy=strategy)
+        with pytest.raises(ValueError, match="not positive and finite"):
+            vw.vnc_hard(mesh, wp.array(tau, dtype=wp.float32, device=device), device=device, strategy=strategy)
 
 
 # --- commands: one line and exit code 2 -----------------------------------------------------------------------

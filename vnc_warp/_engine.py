@@ -372,12 +372,12 @@ class Engine:
                   device=device)
         return f
 
-    def _check_values(self, x: wp.array, radius: wp.array, given=None) -> None:
+    def _check_values(self, x: wp.array, radius: wp.array, *, host_checked: bool = False) -> None:
         """Refuse NaN or infinite positions and scales that are not positive and finite, given on the device (the grid
-        traversals check them while reading their bounds; the BVH one calls this). ``given``: the scales as the caller
-        gave them (default ``radius``): scales given on the host were checked there, and the mesh's own vertices when
-        it was built, so only values given on the device cost a reduction and a read back."""
-        if not self.own(x) or isinstance(radius if given is None else given, wp.array):
+        traversals check them while reading their bounds; the BVH one calls this). ``host_checked``: the scales came
+        from the host, where :func:`per_point` checked them; with the mesh's own vertices, checked when it was built,
+        nothing is then reduced and read back."""
+        if not (host_checked and self.own(x)):
             _plan.bounds(x, radius)
 
     def positions(self, positions) -> wp.array:
@@ -533,7 +533,7 @@ class Engine:
         else:
             outputs += [pool.empty(V, wp.float32), pool.empty(V, wp.vec3)]
         if strategy == "bvh":
-            self._check_values(x, tau_arr, tau)
+            self._check_values(x, tau_arr, host_checked=not isinstance(tau, wp.array))
             return outputs, f, self._soft_bvh(x, tau_arr, kappa, f, outputs), None
         b = bounds or self.host_bounds(x, radius_stats(tau)) or _plan.bounds(x, tau_arr)
         concrete = _plan.resolve(strategy, device, b, b.rmean, V, f.mid.shape[0], self.tuning)
@@ -897,7 +897,7 @@ class Engine:
         outputs = [_plan.empty(pool, device, P, dt) for dt in (wp.float32, wp.float32, wp.vec3)]
         outputs += [_plan.empty(None if fresh else pool, device, P, dt) for dt in (wp.float32, wp.vec3)]
         if strategy == "bvh":
-            self._check_values(x, radius)
+            self._check_values(x, radius, host_checked=stats is not None)
             bvh = self._segment_bvh(x, f)
             wp.launch(_ref.ball_sums, dim=P, inputs=[points, radius, g, bvh.id, x, f.edges, f.mid, f.angle, f.normal],
                       outputs=outputs[:3], device=device)
