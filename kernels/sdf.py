@@ -266,3 +266,24 @@ def reverse_triangles(indices: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.
     out[3 * f] = indices[3 * f]
     out[3 * f + 1] = indices[3 * f + 2]
     out[3 * f + 2] = indices[3 * f + 1]
+
+
+@wp.kernel(enable_backward=False)
+def blend_ellipsoid_grid(grid: wp.array3d(dtype=float), origin: wp.vec3, spacing: float, center: wp.vec3,
+                         axes: wp.mat33, radii: wp.vec3, a: float, min_abs: float, out: wp.array3d(dtype=float)):
+    """Per grid node ``p``: ``(1 - a) f(p) + a g(p)``, with ``f`` the node's value in ``grid`` and ``g`` the signed
+    distance (estimate ``k0 (k0 - 1) / k1``: continuous, exact on the surface and along the axes) of the ellipsoid
+    with ``center``, principal directions the columns of ``axes`` and semi-axes ``radii``; values within ``min_abs``
+    of zero are pushed off it as in :func:`push_off_zero`."""
+    i, j, k = wp.tid()
+    p = origin + spacing * wp.vec3(float(i), float(j), float(k))
+    q = wp.transpose(axes) * (p - center)
+    k0 = wp.length(wp.cw_div(q, radii))
+    k1 = wp.length(wp.cw_div(q, wp.cw_mul(radii, radii)))
+    g = -wp.min(radii[0], wp.min(radii[1], radii[2]))
+    if k1 > 0.0:
+        g = wp.max(k0 * (k0 - 1.0) / k1, g)
+    d = (1.0 - a) * grid[i, j, k] + a * g
+    if wp.abs(d) < min_abs:
+        d = wp.where(d < 0.0, -min_abs, min_abs)
+    out[i, j, k] = d

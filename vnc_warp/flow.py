@@ -52,7 +52,20 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   the same with Eq. (5)'s mean, speed ``H - H_ref``, which does not shrink the shape into a needle; then both at four
   times the step, ``_FALLBACK_DT`` = 1 to 1024 squared edge lengths), and the last searched back on its chord, land it
   (status ``smoothed``, the steps, their kind and ``dt`` in ``exception``); before, such a
-  stage recorded the previous state, and every later stage repeated it. A stalled stage is remeshed from its best
+  stage recorded the previous state, and every later stage repeated it. Where the smoothing fallback too ends
+  short of the window (a state where no curvature step lowers ``S``: on the H200 hammer.obj from stage 22, a
+  ball-headed club whose handle keeps its length, since the thin-part rule stops it thinning and nothing shortens
+  it; mushroom.obj from stage 28; boot.obj at stages 7-10 after a genus change), the **blend fallback** takes the
+  best state toward its own equal-volume moment ellipsoid (same centroid and principal axes, semi-axes from the
+  solid's second moments), the shape the last stage becomes (``bench/last_stage.py``,
+  ``docs/results/last_stage_oracles``): the zero level set of ``(1 - a) f + a g``, ``f`` the state's signed
+  distance (sampled once on the remesher's grid) and ``g`` the ellipsoid's, made by the remesher's level-set path
+  and scaled to the state's volume, with ``a`` in (0, 1] searched (Illinois secant steps, at most
+  ``_BLEND_TRIALS``, ``S`` at the trajectory's scales) until ``t`` lands in the window (status ``blended``;
+  ``a`` and the trials in ``exception`` and the record's ``blend``). Sec. 3.2 asks for a smooth abstraction
+  ending near a sphere; as ``a`` grows a handle retracts into the head instead of thinning. The next stage tries
+  Eq. (5) first again; if its first ``_EARLY_STALE`` evaluations make no progress it goes to the blend at once,
+  without ``max_iters`` and the smoothing fallback. A stalled stage is remeshed from its best
   state and goes on (at most ``stall_remeshes`` times), at half the step if ``S`` never fell below the stage's
   start; on a shape with a handle whose ``S`` never fell, from its current state instead: a handle narrowing
   raises ``S`` (on a torus the thin-part rule fattens the tube and closes the hole), and only a remesh where the
@@ -136,6 +149,13 @@ _FALLBACK_GROWTH = 4.0
 _FALLBACK_DT_MAX = 1024.0
 # ... at most this many evaluations of S per stage, each step kept only while it lowers S.
 _FALLBACK_TRIES = 24
+# A stage that Eq. (5) and the smoothing fallback leave above its window is blended toward its moment ellipsoid
+# (_ellipsoid_blend): at most this many blends (values of a) per stage ...
+_BLEND_TRIALS = 10
+# ... and a stage that starts from a blended state and whose first this many evaluations make no progress goes to the
+# blend at once, without max_iters and the smoothing fallback (hammer on the H200: each held stage took 300 iterations
+# and ~42 evaluations, 2.5 s)
+_EARLY_STALE = 3
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -754,7 +774,8 @@ def flow(
                 else:
                     cur = state
                 state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
-                                      goal=((i - 1) * m + j) / (p.stages * m))
+                                      goal=((i - 1) * m + j) / (p.stages * m),
+                                      early_blend=(subs[-1] if subs else traj.records[-1])["status"] == "blended")
                 subs.append(sub)
                 if j < m:
                     state = _as_saved(state, origin)
@@ -847,7 +868,7 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
 
 
 def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None, *,
-               goal: float | None = None):
+               goal: float | None = None, early_blend: bool = False):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
     ``1 - goal`` (default ``goal = i/N``; a sub-stage's is a fraction in between; see the module docstring); fills
     ``rec`` and returns the state and its device positions. A stage that stalls is remeshed on the way
@@ -878,6 +899,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     last_valid = mesh
     rate = None
     since, within, ahead = 0, [], p.eval_every // 2
+    early = False
     if not final and S_a <= target + tol:
         status = "remesh"
     while status is None:
@@ -932,6 +954,11 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 stepper.backtrack(x_a, part_a)
                 ahead = p.eval_every // 2
                 history.append([it, S_a])
+            if early_blend and stale >= _EARLY_STALE and not final and remesher is not None:
+                # a stage that starts from a blended state and makes no progress goes to the blend at once
+                early = True
+                status = "converged"
+                continue
             if stale >= p.patience and it - since >= 4 * p.eval_max:
                 if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
                     status = "final" if final else "converged"
@@ -999,13 +1026,24 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     # not the last stage: its target t = 0 is out of reach by design (see its exception), and no later stage can
     # repeat its state
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
-            and p.scale_mode == "adaptive"):
+            and p.scale_mode == "adaptive" and not early):
         smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
         if smoothed is not None:
             stepper, S_a, found, _ = smoothed
             evaluations += found
             rec["kept"] = True
             clock.lap("fallback")
+    blended = None
+    if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
+            and p.scale_mode == "adaptive" and remesher is not None):
+        blended = _ellipsoid_blend(stepper, taus, p, device, remesher, S_a, target, tol, history,
+                                   it + evaluations)
+        if blended is not None:
+            stepper, S_a, trials, a, report = blended
+            evaluations += trials
+            rec["kept"] = True
+            rec["blend"] = {"a": a, "trials": trials, "remesh": report.to_dict()}
+            clock.lap("blend")
     if status == "collapsed":
         state = last_valid
         S_a = total_complexity(state, taus, kappa=p.kappa, device=device)
@@ -1029,18 +1067,29 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged"):
+        if early:
+            exception = ((exception + "; ") if exception else "") + (
+                f"from a blended state, no progress in {stale} evaluations; no smoothing tried")
         if smoothed is not None:
             exception = ((exception + "; ") if exception else "") + (
                 f"Eq. (5) did not descend ({status} after {it} iterations); {len(smoothed[3])} implicit smoothing "
                 f"step(s) ({', '.join(f'{kind} dt {d:g}' for kind, d in smoothed[3])}; dt in squared edge lengths) "
                 f"took t to "
-                f"{S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
-            if abs(S_a - target) <= tol:
+                f"{smoothed[1] / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
+            if abs(S_a - target) <= tol and blended is None:
                 status = "smoothed"
-        else:
+        elif blended is None:
             exception = ((exception + "; ") if exception else "") + (
                 f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f}); "
                 "recording the t reached")
+        if blended is not None:
+            if smoothed is None:
+                exception = ((exception + "; ") if exception else "") + (
+                    f"Eq. (5) did not descend ({status} after {it} iterations)")
+            exception += (f"; the SDF blend toward the moment ellipsoid at a = {blended[3]:.4g} ({blended[2]} "
+                          f"trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
+            if abs(S_a - target) <= tol:
+                status = "blended"
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
                status=status, exception=exception, history=history, remeshes_within=within,
                **_facts(state, device, None if status == "collapsed" else stepper.x))
@@ -1114,6 +1163,68 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
         return None
     wp.copy(smoother.x, x_a)
     return smoother, S_best, evaluations, steps
+
+
+def _ellipsoid_blend(stepper: _Stepper, taus, p: FlowParams, device, remesher, S_a: float, target: float,
+                     tol: float, history: list, it: int):
+    """The last fallback of a stage that Eq. (5) and the smoothing fallback leave above its window: the zero level
+    set of ``(1 - a) f + a g`` (``f`` the best state's signed distance, ``g`` its moment ellipsoid's; see
+    :class:`vnc_warp.remesh._EllipsoidBlend`), with ``a`` in (0, 1] searched (secant steps in a bracket, bisection
+    where ``S`` does not fall along it) until ``t`` lands in the window. Returns ``(stepper, S, trials, a, report)``
+    for the blended state nearest the target among those below ``S_a``, or None when no blend lowers ``S``."""
+    from .remesh import _EllipsoidBlend
+
+    tri = wp.array(np.ascontiguousarray(stepper.mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32,
+                   device=stepper.x.device)
+    try:
+        blend = _EllipsoidBlend(remesher, stepper.x, tri)
+    except MeshError as err:
+        log.info("VNC-Flow: no blend toward the moment ellipsoid (%s)", err)
+        return None
+    best, trials = None, 0
+
+    def trial(a: float) -> float:
+        nonlocal best, trials
+        trials += 1
+        try:
+            mesh, report = blend(a)
+        except MeshError as err:
+            log.info("VNC-Flow: the blend at a = %.4g failed (%s)", a, err)
+            return math.inf
+        st = _Stepper(mesh, taus, p, device)
+        S = st.S_start
+        history.append([it + trials, S])
+        if S < S_a and (best is None or abs(S - target) < abs(best[1] - target)):
+            best = (st, S, a, report)
+        return S
+
+    lo, S_lo, hi = 0.0, S_a, 1.0
+    S_hi = trial(hi)
+    side = 0
+    if S_hi < target - tol:
+        while trials < _BLEND_TRIALS:
+            gap = S_lo - S_hi
+            theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 and math.isfinite(gap) else 0.5 * (lo + hi)
+            a = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
+            S = trial(a)
+            if abs(S - target) <= tol:
+                break
+            # Illinois steps: S falls steeply at small a and flattens toward the ellipsoid, so plain secant steps
+            # keep landing on one side; the end kept twice in a row counts half as far from the target
+            if S > target:
+                lo, S_lo = a, S
+                if side > 0:
+                    S_hi = target + 0.5 * (S_hi - target)
+                side = 1
+            else:
+                hi, S_hi = a, S
+                if side < 0:
+                    S_lo = target + 0.5 * (S_lo - target)
+                side = -1
+    if best is None:
+        return None
+    st, S, a, report = best
+    return st, S, trials, a, report
 
 
 def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, target: float, tol: float,

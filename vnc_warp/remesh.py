@@ -1414,11 +1414,13 @@ class _Remesher:
             return f"{buried} vertex(es) lie inside another part of the shape (self-intersection)"
         return None
 
-    def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock, *, euler=None):
+    def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock, *, euler=None, sample=None):
         """Marching cubes, the largest component, decimation, regularization onto the marching-cubes
         surface; retried on other grids and less aggressive decimations until the result is valid. Of each grid's
         two resolutions of ambiguous faces, the one nearest the Euler characteristic ``euler`` (if given: the
-        surface's) is used, so that handles and gaps about one cell across are kept on every device."""
+        surface's) is used, so that handles and gaps about one cell across are kept on every device. ``sample(h,
+        shift)``, if given, makes the level set of another grid (default: ``wm``'s signed distance), and then
+        the result keeps the marching-cubes surface's own area (``area_in`` is not used)."""
         import fast_simplification
 
         failures = []
@@ -1428,7 +1430,8 @@ class _Remesher:
             ls = first.nearest(euler) if g == 0 else None
             for _ in range(3):
                 if ls is None:
-                    ls = _level_set(wm, lo, hi, h, shift, area_in, self.use_winding, self.method, clock).nearest(euler)
+                    ls = (sample(h, shift) if sample is not None else
+                          _level_set(wm, lo, hi, h, shift, area_in, self.use_winding, self.method, clock)).nearest(euler)
                 v_mc, f_mc = ls.host()
                 kept = 0
                 if f_mc.shape[0]:
@@ -1464,7 +1467,7 @@ class _Remesher:
             # the kept part keeps its own area: dropping two of three spheres, or a ring too thin for the
             # grid, must not inflate what is left; only the chords' small loss of area is made up for
             total = float(comp_area.sum())
-            scale = area_in / total if abs(area_in / total - 1.0) <= _CHORD_LOSS else 1.0
+            scale = area_in / total if sample is None and abs(area_in / total - 1.0) <= _CHORD_LOSS else 1.0
             area = float(comp_area.max()) * scale if self.keep_area else None
             for agg in _AGGRESSIVENESS:
                 v, f = fast_simplification.simplify(v_k, f_k, target_count=target, agg=agg)
@@ -1544,6 +1547,105 @@ class _Remesher:
         if report.changes and self.warn:
             warnings.warn(f"sdf_remesh: {self.name}: " + "; ".join(report.changes), RemeshWarning, stacklevel=3)
         return report
+
+
+def moment_ellipsoid(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The solid ellipsoid with the volume, centroid and second moments of the solid a closed, outward-wound
+    triangle mesh bounds (a solid ellipsoid of semi-axes ``r`` has covariance ``diag(r^2) / 5``), scaled to the
+    solid's volume.
+
+    Args:
+        v: (V, 3) float64 positions; f: (F, 3) int triangles.
+
+    Returns:
+        ``(centre (3,), axes (3, 3) with the principal directions as columns, radii (3,), volume)``, in ``v``'s units.
+    """
+    mean = v.mean(axis=0)
+    a, b, c = v[f[:, 0]] - mean, v[f[:, 1]] - mean, v[f[:, 2]] - mean
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))  # 6 x the signed volume of the tetrahedron (0, a, b, c)
+    volume = float(det.sum()) / 6.0
+    if not volume > 0.0:
+        raise MeshError(f"moment_ellipsoid: the surface encloses volume {volume:.6g}; it must be closed and wound "
+                        "outward")
+    s = a + b + c
+    centroid = (s * det[:, None]).sum(axis=0) / (24.0 * volume)
+    second = (np.einsum("i,ij,ik->jk", det, s, s)
+              + sum(np.einsum("i,ij,ik->jk", det, w, w) for w in (a, b, c))) / 120.0
+    cov = second / volume - np.outer(centroid, centroid)
+    lam, axes = np.linalg.eigh(0.5 * (cov + cov.T))
+    radii = np.sqrt(5.0 * np.maximum(lam, 1e-12 * max(float(lam.max()), 1e-300)))
+    radii *= (3.0 * volume / (4.0 * np.pi * float(np.prod(radii)))) ** (1.0 / 3.0)
+    return centroid + mean, axes, radii, volume
+
+
+class _EllipsoidBlend:
+    """The surfaces between a state and its moment ellipsoid (:func:`moment_ellipsoid`): for ``a`` in [0, 1] the
+    zero level set of ``(1 - a) f + a g``, ``f`` the state's signed distance and ``g`` the ellipsoid's, made by the
+    remesher's level-set path (marching cubes, largest component, decimation to the state's face count,
+    regularization, checks) and scaled to the state's volume. ``f`` is sampled once per grid (the remesher's
+    spacing, over the state's and the ellipsoid's bounds), then reused for every ``a``; see
+    :func:`vnc_warp.flow.flow` (the blend fallback) for why."""
+
+    def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array):
+        self.remesher = remesher
+        v = x.numpy().astype(np.float64)
+        self.f = tri.numpy().reshape(-1, 3).astype(np.int64)
+        self.centre, self.axes, self.radii, self.volume = moment_ellipsoid(v, self.f)
+        self.wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(remesher.use_winding))
+        self.area = float(_area_and_centroid(v, self.f)[0])
+        half = np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1))
+        lo, hi = _device_bounds(x)
+        self.lo, self.hi = np.minimum(lo, self.centre - half), np.maximum(hi, self.centre + half)
+        self.euler = v.shape[0] - self.f.shape[0] // 2
+        self.grids: dict = {}
+
+    def _distance(self, h: float, shift, clock: _Clock) -> tuple[wp.array, np.ndarray]:
+        key = (float(h), tuple(shift))
+        if key not in self.grids:
+            origin = self.lo - (2.0 - np.asarray(shift)) * h
+            shape = tuple(int(n) for n in np.ceil((self.hi - origin) / h).astype(int) + 3)
+            grid = sample_grid(self.wm, origin, h, shape, band_factor=choose_band_factor(shape, self.area, h),
+                               use_winding=self.remesher.use_winding, device=self.remesher.device)
+            self.grids[key] = (grid, origin)
+            clock.lap("sdf")
+        return self.grids[key]
+
+    def __call__(self, a: float) -> tuple[Mesh, RemeshReport]:
+        """The blended surface at ``a`` (in the remesher's frame) and its report (``method`` ``"blend"``)."""
+        r = self.remesher
+        seconds: dict = {}
+        clock = _Clock(r.device, seconds)
+        m = wp.mat33(*self.axes.reshape(-1).tolist())
+
+        def sample(h: float, shift) -> _LevelSet:
+            grid, origin = self._distance(h, shift, clock)
+            out = wp.empty_like(grid)
+            wp.launch(_k.blend_ellipsoid_grid, dim=grid.shape,
+                      inputs=[grid, wp.vec3(*origin), float(h), wp.vec3(*self.centre), m, wp.vec3(*self.radii),
+                              float(a), _MIN_ABS_SDF * h], outputs=[out], device=r.device)
+            clock.lap("sdf")
+            ls = _extract(out, origin, h, r.method, False)
+            clock.lap("marching_cubes")
+            return ls
+
+        target = self.f.shape[0]
+        report = RemeshReport("blend", r.spacing, target, euler_in=self.euler, seconds=seconds)
+        report.why_level_set = f"blend toward the moment ellipsoid at a = {a:.4g}"
+        st, _ = r._level_set_path(self.wm, self.lo, self.hi, r.spacing, sample(r.spacing, _GRIDS[0][0]), self.area,
+                                  target, report, clock, euler=self.euler, sample=sample)
+        if r.relax_iterations:
+            area, _, _, _, _ = st.measures()
+            r._own_fixed_point(st, area)
+        # the trajectory's S is measured at fixed scales: a smaller shape would count as a smoother one
+        _, volume, centre, _, _ = st.measures()
+        st.scale_about(centre, (self.volume / volume) ** (1.0 / 3.0))
+        st, problems, report.slivers_repaired = st.checked(1e-12 * float(((self.hi - self.lo) ** 2).sum()))
+        if problems:
+            raise MeshError(f"sdf_remesh: {r.name}: the blend at a = {a:.4g} left " + "; ".join(problems))
+        out = st.to_mesh(f"{r.name}:blended", r.origin)
+        clock.lap("regularize")
+        report.faces, report.vertices, report.euler = out.num_faces, out.num_vertices, st.euler
+        return out, report
 
 
 def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = None, device=None,
