@@ -299,3 +299,24 @@ def test_a_failed_capture_is_recorded_warns_once_and_runs_plain():
         for _ in range(3):
             other.call(("k2",), "unit", run, plain)
     assert len(_replay.capture_failures()) == before + 2
+
+
+@pytest.mark.parametrize("op", ["soft", "hard"])
+def test_auto_matches_the_strategy_it_chooses_bit_for_bit(op, device):
+    """``strategy="auto"`` is the strategy :func:`vnc_warp.choose_strategy` names, not an approximation of it: at a
+    scale where it takes the grid and at one where it reads all pairs, its results, run as usual and replayed from a
+    graph, equal those of that strategy named explicitly, bit for bit (same launches, same order of sums)."""
+    mesh = _mesh(scale=0.4, offset=-3.0)
+    variant = "soft" if op == "soft" else "hard"
+    fn = vw.vnc_soft if op == "soft" else vw.vnc_hard
+    chosen = set()
+    for tau in (2.0 * mesh.mean_edge_length, 1.5 * mesh.bbox_diagonal):
+        strategy = vw.choose_strategy(mesh, tau, variant=variant, device=device)
+        chosen.add(strategy)
+        for tuning in (EVERYWHERE, NOWHERE):
+            auto = [fn(mesh, tau, device=device, tuning=tuning) for _ in range(4)]
+            named = [fn(mesh, tau, device=device, tuning=tuning, strategy=strategy) for _ in range(4)]
+            for (Ha, na), (Hs, ns) in zip(auto, named):
+                np.testing.assert_array_equal(Ha.numpy(), Hs.numpy())
+                np.testing.assert_array_equal(na.numpy(), ns.numpy())
+    assert chosen == {"grid", "dense"}
