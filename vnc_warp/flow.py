@@ -60,7 +60,9 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   solid's second moments), the shape the last stage becomes (``bench/last_stage.py``,
   ``docs/results/last_stage_oracles``): the zero level set of ``(1 - a) f + a g``, ``f`` the state's signed
   distance (sampled once on the remesher's grid) and ``g`` the ellipsoid's, made by the remesher's level-set path
-  and scaled to the state's volume, with ``a`` in (0, 1] searched (Illinois secant steps, at most
+  and scaled to the state's volume (where even ``a = 1`` leaves the stage above its window, the same toward the
+  sphere of the state's volume: a long-handled club's own ellipsoid is a cigar), with ``a`` in (0, 1] searched
+  (Illinois secant steps, at most
   ``_BLEND_TRIALS``, ``S`` at the trajectory's scales) until ``t`` lands in the window (status ``blended``;
   ``a`` and the trials in ``exception`` and the record's ``blend``). Sec. 3.2 asks for a smooth abstraction
   ending near a sphere; as ``a`` grows a handle retracts into the head instead of thinning. The next stage tries
@@ -156,6 +158,8 @@ _BLEND_TRIALS = 10
 # blend at once, without max_iters and the smoothing fallback (hammer on the H200: each held stage took 300 iterations
 # and ~42 evaluations, 2.5 s)
 _EARLY_STALE = 3
+# ... blending toward the moment ellipsoid, then toward the sphere of its volume (see _EllipsoidBlend's roundness)
+_BLEND_ROUNDNESS = (0.0, 1.0)
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -242,6 +246,9 @@ class FlowParams:
             squared mean edge length.
         mcf_dt: time step of the MCF baselines (None: 0.05 explicit, inside its stability limit of about 1/6,
             and 5.0 implicit).
+        smoothing_fallback: a stage that Eq. (5) leaves short of its window is taken on by implicit smoothing
+            steps (see the module docstring; False: an ablation).
+        blend_fallback: ... and where those too end short, by the blend toward the moment ellipsoid.
     """
 
     stages: int = 32
@@ -266,6 +273,8 @@ class FlowParams:
     scale_mode: str = "adaptive"
     method: str = "vnc"
     mcf_dt: float | None = None
+    smoothing_fallback: bool = True
+    blend_fallback: bool = True
 
     def __post_init__(self):
         if self.stages < 1:
@@ -1026,7 +1035,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     # not the last stage: its target t = 0 is out of reach by design (see its exception), and no later stage can
     # repeat its state
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
-            and p.scale_mode == "adaptive" and not early):
+            and p.scale_mode == "adaptive" and not early and p.smoothing_fallback):
         smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
         if smoothed is not None:
             stepper, S_a, found, _ = smoothed
@@ -1035,7 +1044,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             clock.lap("fallback")
     blended = None
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
-            and p.scale_mode == "adaptive" and remesher is not None):
+            and p.scale_mode == "adaptive" and remesher is not None and p.blend_fallback):
         blended = _ellipsoid_blend(stepper, taus, p, device, remesher, S_a, target, tol, history,
                                    it + evaluations)
         if blended is not None:
@@ -1086,8 +1095,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             if smoothed is None:
                 exception = ((exception + "; ") if exception else "") + (
                     f"Eq. (5) did not descend ({status} after {it} iterations)")
-            exception += (f"; the SDF blend toward the moment ellipsoid at a = {blended[3]:.4g} ({blended[2]} "
-                          f"trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
+            exception += (f"; the SDF {blended[4].why_level_set} ({blended[2]} trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
             if abs(S_a - target) <= tol:
                 status = "blended"
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
@@ -1195,11 +1203,16 @@ def _ellipsoid_blend(stepper: _Stepper, taus, p: FlowParams, device, remesher, S
         S = st.S_start
         history.append([it + trials, S])
         if S < S_a and (best is None or abs(S - target) < abs(best[1] - target)):
-            best = (st, S, a, report)
+            best = (st, S, a, report, blend.roundness)
         return S
 
-    lo, S_lo, hi = 0.0, S_a, 1.0
-    S_hi = trial(hi)
+    for blend.roundness in _BLEND_ROUNDNESS:
+        lo, S_lo, hi = 0.0, S_a, 1.0
+        S_hi = trial(hi)
+        # the state's own ellipsoid first; one too elongated to reach the window (a long handle's) gives way to the
+        # sphere of its volume
+        if S_hi <= target + tol or trials >= _BLEND_TRIALS:
+            break
     side = 0
     if S_hi < target - tol:
         while trials < _BLEND_TRIALS:
@@ -1223,7 +1236,7 @@ def _ellipsoid_blend(stepper: _Stepper, taus, p: FlowParams, device, remesher, S
                 side = -1
     if best is None:
         return None
-    st, S, a, report = best
+    st, S, a, report, _ = best
     return st, S, trials, a, report
 
 

@@ -1584,7 +1584,10 @@ class _EllipsoidBlend:
     remesher's level-set path (marching cubes, largest component, decimation to the state's face count,
     regularization, checks) and scaled to the state's volume. ``f`` is sampled once per grid (the remesher's
     spacing, over the state's and the ellipsoid's bounds), then reused for every ``a``; see
-    :func:`vnc_warp.flow.flow` (the blend fallback) for why."""
+    :func:`vnc_warp.flow.flow` (the blend fallback) for why. ``roundness`` in [0, 1] moves the ellipsoid's semi-axes
+    toward the radius of the sphere of its volume (geometric interpolation, the volume kept): at 1 the blend goes
+    toward that sphere, for a state whose own ellipsoid is too elongated to lower ``S`` enough (a long-handled
+    club's: on hammer.obj on the H200 at f00c328 no blend toward its ellipsoid lowered t below 0.375)."""
 
     def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array):
         self.remesher = remesher
@@ -1593,7 +1596,8 @@ class _EllipsoidBlend:
         self.centre, self.axes, self.radii, self.volume = moment_ellipsoid(v, self.f)
         self.wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(remesher.use_winding))
         self.area = float(_area_and_centroid(v, self.f)[0])
-        half = np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1))
+        self.roundness = 0.0
+        half = np.maximum(np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1)), self.radii.max())
         lo, hi = _device_bounds(x)
         self.lo, self.hi = np.minimum(lo, self.centre - half), np.maximum(hi, self.centre + half)
         self.euler = v.shape[0] - self.f.shape[0] // 2
@@ -1616,12 +1620,14 @@ class _EllipsoidBlend:
         seconds: dict = {}
         clock = _Clock(r.device, seconds)
         m = wp.mat33(*self.axes.reshape(-1).tolist())
+        sphere = float(np.prod(self.radii)) ** (1.0 / 3.0)
+        radii = self.radii ** (1.0 - self.roundness) * sphere ** self.roundness
 
         def sample(h: float, shift) -> _LevelSet:
             grid, origin = self._distance(h, shift, clock)
             out = wp.empty_like(grid)
             wp.launch(_k.blend_ellipsoid_grid, dim=grid.shape,
-                      inputs=[grid, wp.vec3(*origin), float(h), wp.vec3(*self.centre), m, wp.vec3(*self.radii),
+                      inputs=[grid, wp.vec3(*origin), float(h), wp.vec3(*self.centre), m, wp.vec3(*radii),
                               float(a), _MIN_ABS_SDF * h], outputs=[out], device=r.device)
             clock.lap("sdf")
             ls = _extract(out, origin, h, r.method, False)
@@ -1630,7 +1636,7 @@ class _EllipsoidBlend:
 
         target = self.f.shape[0]
         report = RemeshReport("blend", r.spacing, target, euler_in=self.euler, seconds=seconds)
-        report.why_level_set = f"blend toward the moment ellipsoid at a = {a:.4g}"
+        report.why_level_set = f"blend toward the moment ellipsoid (roundness {self.roundness:g}) at a = {a:.4g}"
         st, _ = r._level_set_path(self.wm, self.lo, self.hi, r.spacing, sample(r.spacing, _GRIDS[0][0]), self.area,
                                   target, report, clock, euler=self.euler, sample=sample)
         if r.relax_iterations:
