@@ -616,14 +616,10 @@ def test_the_moment_ellipsoid_of_an_ellipsoid_is_itself():
     assert np.isclose(volume, trimesh.Trimesh(v, sphere.faces, process=False).volume)
 
 
-def test_the_ellipsoid_blend_lands_a_club_in_its_window():
-    """A ball-headed club (tests/capsules.py CLUB remeshed to 3000 faces, sphericity 0.44): the SDF blend toward its
-    moment ellipsoid lands t within the tolerance of a target 0.6 of its S (S recomputed by total_complexity from the
-    returned state), on a valid closed surface of the same face count and volume (within 1 %, trimesh); and blends
-    at growing a are ever nearer the ellipsoid (mean |g| over the vertices, g the ellipsoid's implicit
-    |q / r| - 1, falls) and rounder than the club."""
+def _club_state():
+    """The club of tests/capsules.py remeshed to 3000 faces on the CPU: ``(remesher, mesh, taus, params, stepper, S)``."""
     from capsules import CLUB, capsules
-    from vnc_warp.remesh import _EllipsoidBlend, _Remesher
+    from vnc_warp.remesh import _Remesher
 
     remesher = _Remesher(faces=3000, device="cpu", warn=False)
     mesh, _ = remesher(capsules(CLUB, nodes=64))
@@ -631,7 +627,18 @@ def test_the_ellipsoid_blend_lands_a_club_in_its_window():
     taus = vw.default_scales(mesh, 16)
     p = flow_mod.FlowParams(stages=8)
     stepper = flow_mod._Stepper(mesh, taus, p, "cpu")
-    S = stepper.S_start
+    return remesher, mesh, taus, p, stepper, stepper.S_start
+
+
+def test_the_ellipsoid_blend_lands_a_club_in_its_window():
+    """A ball-headed club (tests/capsules.py CLUB remeshed to 3000 faces, sphericity 0.44): the SDF blend toward its
+    moment ellipsoid lands t within the tolerance of a target 0.6 of its S (S recomputed by total_complexity from the
+    returned state), on a valid closed surface of the same face count and volume (within 1 %, trimesh); and blends
+    at growing a are ever nearer the ellipsoid (mean |g| over the vertices, g the ellipsoid's implicit
+    |q / r| - 1, falls) and rounder than the club."""
+    from vnc_warp.remesh import _EllipsoidBlend
+
+    remesher, mesh, taus, p, stepper, S = _club_state()
     out = flow_mod._ellipsoid_blend(stepper, taus, p, "cpu", remesher, S, 0.6 * S, 0.005 * S, [], 0)
     assert out is not None
     blended, S_out, trials, a, _ = out
@@ -660,16 +667,9 @@ def test_the_blend_goes_toward_the_sphere_below_the_ellipsoid():
     the ellipsoid blend's reach (a = 1 stays above the window); the blend then goes toward the sphere of the club's
     volume and lands t within the tolerance (S recomputed by total_complexity), on a valid surface of the same face
     count and volume (within 1 %, trimesh), rounder than anything the ellipsoid blend gives."""
-    from capsules import CLUB, capsules
-    from vnc_warp.remesh import _EllipsoidBlend, _Remesher
+    from vnc_warp.remesh import _EllipsoidBlend
 
-    remesher = _Remesher(faces=3000, device="cpu", warn=False)
-    mesh, _ = remesher(capsules(CLUB, nodes=64))
-    mesh = flow_mod._as_saved(mesh, remesher.origin)
-    taus = vw.default_scales(mesh, 16)
-    p = flow_mod.FlowParams(stages=8)
-    stepper = flow_mod._Stepper(mesh, taus, p, "cpu")
-    S = stepper.S_start
+    remesher, mesh, taus, p, stepper, S = _club_state()
     tri = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu")
     ellipsoid = _EllipsoidBlend(remesher, wp.array(mesh.local_vertices, dtype=wp.vec3, device="cpu"), tri)(1.0)[0]
     S_ellipsoid = total_complexity(ellipsoid, taus, device="cpu")
