@@ -27,6 +27,7 @@ import sys
 import numpy as np
 import trimesh
 
+from vnc_warp.remesh import moment_ellipsoid
 from vnc_warp.trajectory import read_trajectory
 from vnc_warp.training.data import normalization
 from vnc_warp.training.metrics import _sample, _scores, compare_meshes
@@ -39,16 +40,13 @@ def _sphere(radius: float, centre: np.ndarray) -> trimesh.Trimesh:
 
 
 def _moment_ellipsoid(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The ellipsoid with the solid's centroid, principal axes and axis ratios, scaled to the mesh's area."""
-    c = mesh.center_mass
-    inertia = mesh.moment_inertia / mesh.mass  # about the centroid, per unit mass
-    evals, evecs = np.linalg.eigh(inertia)
-    # a solid ellipsoid of semi-axes a, b, c has I_x / m = (b^2 + c^2) / 5 and so on
-    sq = np.clip(5.0 / 2.0 * (evals.sum() - 2.0 * evals), 1e-12, None)
+    """The ellipsoid with the solid's centroid, principal axes and axis ratios (:func:`vnc_warp.remesh.moment_ellipsoid`),
+    scaled to the mesh's area."""
+    c, axes, radii, _ = moment_ellipsoid(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))
     e = trimesh.creation.icosphere(subdivisions=6, radius=1.0)
-    e.apply_transform(np.diag(np.r_[np.sqrt(sq), 1.0]))
+    e.apply_transform(np.diag(np.r_[radii, 1.0]))
     e.apply_scale(np.sqrt(mesh.area / e.area))
-    e.apply_transform(np.block([[evecs, c[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    e.apply_transform(np.block([[axes, c[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
     return e
 
 
