@@ -1598,8 +1598,7 @@ class _EllipsoidBlend:
         self.area = float(_area_and_centroid(v, self.f)[0])
         self.roundness = 0.0
         half = np.maximum(np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1)), self.radii.max())
-        lo, hi = _device_bounds(x)
-        self.lo, self.hi = np.minimum(lo, self.centre - half), np.maximum(hi, self.centre + half)
+        self.lo, self.hi = np.minimum(v.min(axis=0), self.centre - half), np.maximum(v.max(axis=0), self.centre + half)
         self.euler = v.shape[0] - self.f.shape[0] // 2
         self.grids: dict = {}
 
