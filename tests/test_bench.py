@@ -217,3 +217,31 @@ def test_remesh_topology_forces_the_level_set_path(tmp_path):
         assert math.isfinite(row["dS"]) and row["euler_again"] == 2
         assert 0.0 < row["edge_spread0"] < 1.0 and 0.0 < row["edge_spread1"] < 1.0
     assert rows[True]["edge_spread0"] == pytest.approx(rows[False]["edge_spread0"], rel=1e-6)
+
+
+def _run_json(path, device, medians):
+    rows = [{"mesh": "m", "tau_label": s, "name": "vnc_soft", "variant": "auto", "status": "ok", "median_ms": v}
+            for s, v in medians.items()]
+    path.write_text(json.dumps({"device": {"name": device}, "rows": rows}))
+    return str(path)
+
+
+def test_ab_compares_the_best_median_of_each_side(tmp_path, capsys):
+    """bench.ab sets each row's fastest base median beside its fastest head median: a row whose head is slower only
+    in one of two runs is not flagged, one slower in both is; runs from two devices are refused."""
+    from bench import ab
+
+    b1 = _run_json(tmp_path / "b1.json", "gpu", {"2 l": 1.00, "8 l": 2.00})
+    b2 = _run_json(tmp_path / "b2.json", "gpu", {"2 l": 1.04, "8 l": 2.02})
+    h1 = _run_json(tmp_path / "h1.json", "gpu", {"2 l": 1.20, "8 l": 2.20})
+    h2 = _run_json(tmp_path / "h2.json", "gpu", {"2 l": 1.01, "8 l": 2.10})
+    res = ab.main(["--base", b1, b2, "--head", h1, h2, "--out", str(tmp_path / "ab.json")])
+    by = {r["scale"]: r for r in res["rows"]}
+    assert by["2 l"]["ratio"] == pytest.approx(1.01) and not by["2 l"]["slower"]
+    assert by["8 l"]["ratio"] == pytest.approx(1.05) and by["8 l"]["slower"]
+    assert res["compared"] == 2 and res["slower"] == 1
+    assert json.loads((tmp_path / "ab.json").read_text())["slower"] == 1
+    assert "1 more than 3 % slower" in capsys.readouterr().out
+    other = _run_json(tmp_path / "o.json", "cpu", {"2 l": 1.0})
+    with pytest.raises(SystemExit, match="more than one device"):
+        ab.main(["--base", b1, other, "--head", h1])
