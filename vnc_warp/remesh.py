@@ -113,6 +113,12 @@ _BURIED_SHARE = 0.003
 # Level-set components other than the largest that hold less than this share of its area in all are specks
 # off tips thinner than the grid, not a topology change of the surface.
 _SPECKS = 1.0e-3
+# A level set that shows the surface with more handles or more pieces on both grids (each resolution of ambiguous
+# faces), while the surface intersects nothing, is the grid tearing a part thinner than itself when some of the solid
+# is thinner than this many cells (no node need fall inside it: a slab thinner than sqrt(3) cells can miss every
+# node) and no gap outside it is narrower than this many cells (nothing the level set could have joined): see
+# _Remesher._disagreement.
+_TEAR_CELLS = 2.0
 # At most this many further level-set passes on a level-set result that disagrees with its own level set.
 _TOPOLOGY_PASSES = 3
 # Input surface farther than this many edge lengths of the result from it counts as lost (a part thinner
@@ -190,6 +196,8 @@ class RemeshReport:
             vanished at spacing ``h``).
         area_scale: linear factor of the final scaling to the kept area (1 = none).
         why_level_set: why the input's own surface was not used (None on the surface path).
+        grid_tear: on the surface path, why a level set that showed more handles or pieces than the surface was
+            taken for the grid tearing a part thinner than itself (None when the level set agreed).
         topology_passes: further level-set passes until the result agreed with its own level set.
         slivers_repaired: edge flips and collapses that removed sliver faces the regularization left
             (``_repair_slivers``).
@@ -215,6 +223,7 @@ class RemeshReport:
     lost_area: float = 0.0
     area_scale: float = 1.0
     why_level_set: str | None = None
+    grid_tear: str | None = None
     topology_passes: int = 0
     slivers_repaired: int = 0
     repairs: dict = field(default_factory=dict)
@@ -750,6 +759,16 @@ def _farthest(wm: wp.Mesh, points: wp.array, cap: float) -> float:
     return float(out.numpy()[0])
 
 
+def _main_topology(ls: _LevelSet) -> tuple[int, float]:
+    """Euler characteristic of a non-empty level set's largest component, and the share of its area in the others."""
+    v, f = ls.host()
+    label, area = ls.components()
+    main = label == np.argmax(area)
+    used = np.zeros(v.shape[0], dtype=bool)
+    used[f[main].reshape(-1)] = True
+    return int(np.count_nonzero(used)) - int(main.sum()) // 2, float(1.0 - area.max() / area.sum())
+
+
 def _same_topology(ls: _LevelSet, euler: int) -> bool:
     """Whether a level set has the Euler characteristic ``euler``: it has, or its largest component has and the others
     are specks (less than ``_SPECKS`` of the area in all) that marching cubes samples off a tip thinner than the grid."""
@@ -757,13 +776,37 @@ def _same_topology(ls: _LevelSet, euler: int) -> bool:
         return False
     if ls.euler == euler:
         return True
-    v, f = ls.host()
-    label, area = ls.components()
-    main = label == np.argmax(area)
-    used = np.zeros(v.shape[0], dtype=bool)
-    used[f[main].reshape(-1)] = True
-    return (int(np.count_nonzero(used)) - int(main.sum()) // 2 == euler
-            and area.max() >= (1.0 - _SPECKS) * area.sum())
+    main, others = _main_topology(ls)
+    return main == euler and others <= _SPECKS
+
+
+def _torn(ls: _LevelSet, euler: int) -> bool:
+    """Whether a level set shows a surface of Euler characteristic ``euler`` torn or broken up and nothing closed: its
+    largest component has more handles (a hole punched through a sheet: Euler characteristic below ``euler``), or
+    the same and other pieces beside it that are more than specks (a sheet broken into fragments). A handle that
+    closed raises the largest component's Euler characteristic (a torus whose tube is thinner than the grid breaks
+    into a ball: 2 around 0), which is no tear."""
+    if not ls.num_faces:
+        return False
+    main, others = _main_topology(ls)
+    return main < euler or (main == euler and others > _SPECKS)
+
+
+def _thinnest_and_narrowest(wm: wp.Mesh, span: float) -> tuple[float, float]:
+    """Thinnest solid and narrowest gap of the closed surface ``wm`` (mesh units): the shortest distances to the next
+    surface hit along the inward and the outward face normals from ``_THICKNESS_SAMPLES`` area-weighted points
+    (``inf`` where no ray hit). ``span`` is the longest distance looked for (the bounding-box diagonal)."""
+    x, tri = wm.points, wm.indices
+    points, normals = surface_samples(x, tri, _THICKNESS_SAMPLES, seed=0)
+    outward = wp.array(-normals.numpy(), dtype=wp.vec3, device=x.device)
+    out = []
+    for n in (normals, outward):
+        d = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
+        wp.launch(_k.inward_thickness, dim=points.shape[0], inputs=[wm.id, points, n, 1e-5 * span, 2.0 * span],
+                  outputs=[d], device=x.device)
+        d = d.numpy()
+        out.append(float(d[d > 0.0].min()) if (d > 0.0).any() else float("inf"))
+    return out[0], out[1]
 
 
 def _grid_allows(ls: _LevelSet, euler: int) -> bool:
@@ -1320,7 +1363,7 @@ class _Remesher:
         clock.lap("checks")
         ls = _level_set(wm, lo, hi, h, _GRIDS[0][0], area_in, self.use_winding, self.method, clock)
         if why is None:
-            why = self._disagreement(st, wm, ls, lo, hi, h, area_in, clock)
+            why = self._disagreement(st, wm, ls, lo, hi, h, area_in, clock, report=report)
         if why is None:
             st.regularize(wm, self.relax_iterations, area_in, settle=positions is None)
             if positions is None:
@@ -1380,7 +1423,7 @@ class _Remesher:
         st.regularize(st.frozen(winding=False), self.relax_iterations, area)
 
     def _disagreement(self, st: _HalfEdgeSurface, wm: wp.Mesh, ls: _LevelSet, lo: np.ndarray, hi: np.ndarray, h: float,
-                      area: float, clock: _Clock) -> str | None:
+                      area: float, clock: _Clock, *, report: RemeshReport | None = None) -> str | None:
         """Why the surface ``st`` (``wm`` its ``wp.Mesh``, ``area`` its area, ``[lo, hi]`` its bounds) is not its level
         set ``ls`` at spacing ``h``, or None.
 
@@ -1396,14 +1439,24 @@ class _Remesher:
         """
         if not ls.num_faces:
             return "its level set is empty"
+        tear = None
         if not _grid_allows(ls, st.euler):
             clock.lap("checks")
             other = _level_set(wm, lo, hi, h, _GRIDS[1][0], area, self.use_winding, self.method, clock)
             clock.lap("checks")
             if not _grid_allows(other, st.euler):
-                return (f"its level set has Euler characteristic {ls.euler} ({ls.joined().euler} with ambiguous "
-                        f"faces joined), the surface {st.euler}")
-            ls = other
+                topology = (f"its level set has Euler characteristic {ls.euler} ({ls.joined().euler} with ambiguous "
+                            f"faces joined), the surface {st.euler}")
+                if not all(_torn(r, st.euler) for g in (ls, other) for r in g.resolutions()):
+                    return topology
+                thin, gap = _thinnest_and_narrowest(wm, float(np.linalg.norm(hi - lo)))
+                clock.lap("checks")
+                if not (thin < _TEAR_CELLS * h <= gap):
+                    return topology
+                tear = (f"{topology}: the grid tore a part thinner than itself (thinnest {thin / h:.2f} cells, "
+                        f"narrowest gap {gap / h:.2f} cells); the surface was kept")
+            else:
+                ls = other
         added = _farthest(wm, ls.points, 2.0 * _AGREE_CELLS * h) / h
         if added > _AGREE_CELLS:
             clock.lap("checks")
@@ -1412,6 +1465,8 @@ class _Remesher:
         clock.lap("checks")
         if buried > _BURIED_SHARE * st.num_vertices:
             return f"{buried} vertex(es) lie inside another part of the shape (self-intersection)"
+        if tear is not None and report is not None:
+            report.grid_tear = tear
         return None
 
     def _level_set_path(self, wm, lo, hi, h0, first, area_in, target, report, clock, *, euler=None, sample=None):
