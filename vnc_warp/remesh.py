@@ -17,6 +17,10 @@ close) is sampled on a narrow-band grid of spacing ``h``, and one of two surface
   quadric decimation (fast-simplification) to the face count, and the same regularization projected onto
   the marching-cubes surface.
 
+A level set that only tears a part thinner than the grid (more handles or pieces on every grid, some solid
+thinner than two cells, no gap that narrow, nothing intersecting) does not count as a disagreement: the grid,
+not the shape, made the hole (sword.obj's blade: S +3.39 % on an H200 before; see ``_Remesher._disagreement``).
+
 Where detail went (measured with the total VNC-AUC ``S`` of Eq. (4) summed over vertices, 16 scales, at
 the input's face count on CPU; see ``docs/flow_balance.md``): remeshing an already remeshed surface through
 marching cubes moved ``S`` by -2.2 / -3.7 % (human_man), -2.1 / -1.3 % (bunny), +4.1 / -5.8 % (torus) and
@@ -1436,6 +1440,20 @@ class _Remesher:
         and -28 on one grid with Warp's, ambiguous faces kept apart and joined). Sending such a surface down the
         marching-cubes path lost 8 of its 12 handles and 9.7 % of its total VNC-AUC in one remesh of an unchanged
         surface. A real change (a handle narrowed below the grid, parts that met) shows on both grids.
+
+        A level set that shows more handles or more pieces than the surface on both grids and both resolutions, and
+        closes none (:func:`_torn`), is the grid tearing a part thinner than itself when some of the solid is thinner
+        than ``_TEAR_CELLS`` cells, no gap outside it is narrower (nothing the level set could have joined:
+        :func:`_thinnest_and_narrowest`), and no part is buried in another: curvature flow never opens a hole in a
+        sheet, and parts that touch show as a self-intersection. Then the surface is kept (``report.grid_tear`` says
+        why). sword.obj's blade (5th-percentile thickness 0.009 of the radius of its sphere of equal area, thinner
+        than a cell where the grid is capped at ``_MAX_GRID_NODES``) had its unchanged stage 0 sent down the
+        level-set path on an H200 ("Euler characteristic 0 ..., the surface 2": a hole punched through the blade),
+        S +3.39 %, and later remeshes broke the blade into fragments (Euler characteristic 28 around 2); the flow
+        never reached a sphere (final sphericity 0.25). A plate 0.018 thick at its centre, remeshed at spacing 0.04:
+        S +7.5 % and Euler characteristic 2 -> 0 before, +0.11 % on the surface path after. Handles that close
+        (a torus's hole, boot's eyelets: the largest component's Euler characteristic rises) and contact joins (the
+        self-intersection check below) still take the level set.
         """
         if not ls.num_faces:
             return "its level set is empty"
