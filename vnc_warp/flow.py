@@ -213,7 +213,14 @@ class FlowParams:
         step_fraction: eta of the step size rule (fraction of the mean edge length per iteration).
         max_lambda: stability cap on lambda, in mean edge lengths per radian of curvature deviation. The
             explicit step diverges above about 12-16 (measured on Spot with the default scales); 6 keeps a
-            factor of two.
+            factor of two. It is where a stage starts: see ``step_growth``.
+        step_growth: after each run of steps that lowered ``S`` by more than 0.1 %, ``lambda`` is multiplied by this,
+            up to the step size rule's own value ``eta / q90`` (no ``max_lambda`` cap), until the stage first
+            backtracks (a run of steps that raised ``S`` is taken back at half the step, see the module docstring);
+            1 keeps ``lambda`` fixed for the stage. Late stages need it: near a sphere ``q90`` is small, ``lambda``
+            sits at the cap, and since VNC-soft's ``H`` scales with the edge length, each step moves a vertex by
+            ``max_lambda`` edge lengths times ``H``, about one hundredth of an edge; at 50k faces the stages took the
+            full ``max_iters`` (issue 21, H200 at 25fa345).
         phi_fraction: Eq. (6) budget as a fraction of the stage's mean per-vertex VNC-AUC.
         tube_rho: where the shape factor ``rho`` (thickness along the inward normal times the mean curvature
             at the largest scale: 1 on a tube, 2 on a ball) is at most this, the part-scale excess of curvature
@@ -249,6 +256,10 @@ class FlowParams:
         smoothing_fallback: a stage that Eq. (5) leaves short of its window is taken on by implicit smoothing
             steps (see the module docstring; False: an ablation).
         blend_fallback: ... and where those too end short, by the blend toward the moment ellipsoid.
+        early_fallback: a stage whose step can grow no further (``step_growth``) and whose best ``S``, at the rate it
+            fell over the last ``2 eval_max`` iterations, would not reach the window within ``max_iters`` goes to the
+            fallbacks at once (its ``exception`` says so, with the iterations it would have needed) instead of
+            after ``max_iters`` and the stall remeshes on the way (False: it runs them out, as before).
     """
 
     stages: int = 32
@@ -257,6 +268,8 @@ class FlowParams:
     kappa: float = 6.0
     step_fraction: float = 0.25
     max_lambda: float = 6.0
+    step_growth: float = 2.0
+    early_fallback: bool = True
     phi_fraction: float = 0.5
     tube_rho: float = 1.2
     ball_rho: float = 1.8
@@ -285,6 +298,8 @@ class FlowParams:
             raise ValueError(f"scale_mode must be adaptive, small or large, got {self.scale_mode!r}")
         if self.method not in ("vnc", "mcf_explicit", "mcf_implicit"):
             raise ValueError(f"method must be vnc, mcf_explicit or mcf_implicit, got {self.method!r}")
+        if not self.step_growth >= 1.0:
+            raise ValueError(f"step_growth must be >= 1, got {self.step_growth}")
         for name in ("step_fraction", "phi_fraction", "kappa", "tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
@@ -519,6 +534,8 @@ class _Stepper:
         self.engine = _Engine(mesh, taus, p.kappa, device)
         self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.lam = None
+        self.lam_rule = None
+        self.backtracked = False
         self.S_start = None
         self.move_scale = 1.0
         V = mesh.num_vertices
@@ -594,7 +611,8 @@ class _Stepper:
             V = self.mesh.num_vertices
             if self.lam is None:
                 q = _quantile90(H, self.ref)
-                self.lam = self.step_scale * min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
+                self.lam_rule = self.step_scale * (p.step_fraction / q if q > 0 else 0.0) * self.edge
+                self.lam = min(self.lam_rule, self.step_scale * p.max_lambda * self.edge)
             wp.launch(_k.balanced_step, dim=V,
                       inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part],
                       outputs=[self.x_next], device=self.device)
@@ -612,10 +630,20 @@ class _Stepper:
         every vertex's move clamp, so that each move of Eq. (5) is half what it was."""
         wp.copy(self.x, x)
         wp.copy(self.part, part)
+        self.backtracked = True
         self.move_scale *= 0.5
         self.lam *= 0.5
         self.max_move = wp.array(np.float32(self.p.step_fraction * self.move_scale) * self.local, dtype=wp.float32,
                                  device=self.device)
+
+    def grow(self) -> bool:
+        """After a run of steps that lowered ``S``: multiply ``lambda`` by ``step_growth``, up to the step size rule's
+        own value (the 90th-percentile vertex moves ``eta`` mean edge lengths, without the ``max_lambda`` cap), and
+        never again in a stage that backtracked. Returns whether it grew."""
+        if self.lam is None or self.backtracked or not self.lam < self.lam_rule or self.p.step_growth <= 1.0:
+            return False
+        self.lam = min(self.lam * self.p.step_growth, self.lam_rule)
+        return True
 
     def complexity(self) -> float:
         """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
@@ -909,6 +937,9 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     rate = None
     since, within, ahead = 0, [], p.eval_every // 2
     early = False
+    # a stage whose fallbacks can take it on goes to them as soon as Eq. (5) is seen to be too slow for its window
+    cut, cut_ok = None, (not final and p.method == "vnc" and p.scale_mode == "adaptive" and p.early_fallback
+                         and (p.smoothing_fallback or (p.blend_fallback and remesher is not None)))
     if not final and S_a <= target + tol:
         status = "remesh"
     while status is None:
@@ -955,6 +986,10 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 wp.copy(x_a, stepper.x)
                 if descent:
                     wp.copy(part_a, stepper.part)
+                if descent and S_b < S_a * (1.0 - _PROGRESS):
+                    # the step held: the next run of steps may take larger ones (see FlowParams.step_growth)
+                    if stepper.grow():
+                        rate *= p.step_growth
                 S_a, it_a = S_b, it
             elif descent and (S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init
                               or (S_a < S_seg and S_b > S_a + _CLIMB * tol)):
@@ -968,6 +1003,14 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 early = True
                 status = "converged"
                 continue
+            if cut_ok and descent and (stepper.backtracked or not stepper.lam < stepper.lam_rule):
+                need = _iterations_needed(history, since, it, S_a, target + tol, 2 * p.eval_max)
+                if need is not None and need > p.max_iters - it:
+                    # Eq. (5) at its step (grown as far as it goes) cannot reach the window in the iterations left:
+                    # the fallback now, rather than after max_iters and the stall remeshes on the way
+                    cut = (need, p.max_iters - it)
+                    status = "converged"
+                    continue
             if stale >= p.patience and it - since >= 4 * p.eval_max:
                 if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
                     status = "final" if final else "converged"
@@ -1076,12 +1119,17 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged"):
+        stop = f"too slow after {it} iterations" if cut is not None else f"{status} after {it} iterations"
+        if cut is not None:
+            exception = ((exception + "; ") if exception else "") + (
+                f"Eq. (5) at its rate over the last {2 * p.eval_max} iterations would need {cut[0]:.0f} more to reach "
+                f"the window, {cut[1]} were left: fallback at iteration {it}")
         if early:
             exception = ((exception + "; ") if exception else "") + (
                 f"from a blended state, no progress in {stale} evaluations; no smoothing tried")
         if smoothed is not None:
             exception = ((exception + "; ") if exception else "") + (
-                f"Eq. (5) did not descend ({status} after {it} iterations); {len(smoothed[3])} implicit smoothing "
+                f"Eq. (5) did not descend ({stop}); {len(smoothed[3])} implicit smoothing "
                 f"step(s) ({', '.join(f'{kind} dt {d:g}' for kind, d in smoothed[3])}; dt in squared edge lengths) "
                 f"took t to "
                 f"{smoothed[1] / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
@@ -1094,7 +1142,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         if blended is not None:
             if smoothed is None:
                 exception = ((exception + "; ") if exception else "") + (
-                    f"Eq. (5) did not descend ({status} after {it} iterations)")
+                    f"Eq. (5) did not descend ({stop})")
             exception += (f"; the SDF {blended[4].why_level_set} ({blended[2]} trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
             if abs(S_a - target) <= tol:
                 status = "blended"
@@ -1238,6 +1286,18 @@ def _ellipsoid_blend(stepper: _Stepper, taus, p: FlowParams, device, remesher, S
         return None
     st, S, a, report, _ = best
     return st, S, trials, a, report
+
+
+def _iterations_needed(history: list, since: float, it: int, S_a: float, S_goal: float, window: int) -> float | None:
+    """The iterations Eq. (5) needs to take its best ``S_a`` down to ``S_goal`` at the rate it lowered its best ``S``
+    over its last ``window`` iterations (``history``'s ``[iteration, S]`` since the segment's start ``since``): a
+    linear extrapolation of a decay that slows down, so a lower bound. None while the segment is shorter than
+    ``window`` or its best ``S`` did not fall over it (a stall: see ``patience``)."""
+    back = [S for j, S in history if since <= j <= it - window]
+    if not back:
+        return None
+    fell = min(back) - S_a
+    return (S_a - S_goal) * (it - max(j for j, _ in history if since <= j <= it - window)) / fell if fell > 0 else None
 
 
 def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, target: float, tol: float,
