@@ -636,11 +636,16 @@ class _Stepper:
         self.max_move = wp.array(np.float32(self.p.step_fraction * self.move_scale) * self.local, dtype=wp.float32,
                                  device=self.device)
 
+    def can_grow(self) -> bool:
+        """Whether :meth:`grow` would still enlarge the step."""
+        return (self.lam is not None and not self.backtracked and self.lam < self.lam_rule
+                and self.p.step_growth > 1.0)
+
     def grow(self) -> bool:
         """After a run of steps that lowered ``S``: multiply ``lambda`` by ``step_growth``, up to the step size rule's
         own value (the 90th-percentile vertex moves ``eta`` mean edge lengths, without the ``max_lambda`` cap), and
         never again in a stage that backtracked. Returns whether it grew."""
-        if self.lam is None or self.backtracked or not self.lam < self.lam_rule or self.p.step_growth <= 1.0:
+        if not self.can_grow():
             return False
         self.lam = min(self.lam * self.p.step_growth, self.lam_rule)
         return True
@@ -1003,7 +1008,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 early = True
                 status = "converged"
                 continue
-            if cut_ok and descent and (stepper.backtracked or not stepper.lam < stepper.lam_rule):
+            if cut_ok and descent and not stepper.can_grow():
                 need = _iterations_needed(history, since, it, S_a, target + tol, 2 * p.eval_max)
                 if need is not None and need > p.max_iters - it:
                     # Eq. (5) at its step (grown as far as it goes) cannot reach the window in the iterations left:
