@@ -750,3 +750,28 @@ def test_the_step_grows_where_it_holds_so_a_slow_stage_takes_fewer_iterations():
     assert grown["iterations"] < 80
     for m in runs[2.0].meshes:
         assert not surface_problems(m.vertices, m.faces)
+
+
+def test_the_smoothing_fallback_starts_where_the_previous_stage_s_ended():
+    """The capsule hammer of the test above: from the ``(kind, dt)`` that a first fallback ended with (the previous
+    stage's, recorded in its ``smoothing``), a second fallback on the same state lands in the same window with fewer
+    evaluations of S (the kinds it skipped, each tried and undone before, come last), on a valid surface."""
+    from capsules import HAMMER, capsules
+
+    mesh = flow_mod._as_saved(vw.load_mesh(capsules(HAMMER, nodes=48)))
+    taus = vw.default_scales(mesh, 16)
+    p = flow_mod.FlowParams(stages=8)
+    S = flow_mod._Stepper(mesh, taus, p, "cpu").S_start
+    runs = []
+    for start in (None, "previous"):
+        stepper = flow_mod._Stepper(mesh, taus, p, "cpu")
+        out = flow_mod._smoothing_fallback(stepper, taus, p, "cpu", S, 0.9 * S, 0.005 * S, [], 0,
+                                           start=runs[0][3][-1] if start else None)
+        assert out is not None
+        runs.append(out)
+    (_, _, cold, steps), (smoother, S_warm, warm, _) = runs
+    assert steps[-1][1] > flow_mod._FALLBACK_DT, steps  # the first run had to climb the dt ladder
+    assert warm < cold, (warm, cold)
+    state = smoother.current()
+    assert abs(total_complexity(state, taus, device="cpu") - 0.9 * S) <= 0.005 * S
+    assert not surface_problems(state.vertices, state.faces)

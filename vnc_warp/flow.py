@@ -817,7 +817,7 @@ def flow(
                     cur = state
                 state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
                                       goal=((i - 1) * m + j) / (p.stages * m),
-                                      early_blend=(subs[-1] if subs else traj.records[-1])["status"] == "blended")
+                                      previous=subs[-1] if subs else traj.records[-1])
                 subs.append(sub)
                 if j < m:
                     state = _as_saved(state, origin)
@@ -910,11 +910,14 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
 
 
 def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None, *,
-               goal: float | None = None, early_blend: bool = False):
+               goal: float | None = None, previous: dict | None = None):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
     ``1 - goal`` (default ``goal = i/N``; a sub-stage's is a fraction in between; see the module docstring); fills
     ``rec`` and returns the state and its device positions. A stage that stalls is remeshed on the way
-    (``remesher``, if any; ``stall_remeshes``)."""
+    (``remesher``, if any; ``stall_remeshes``). ``previous``: the record of the stage (or sub-stage) before, whose
+    fallback tells this one's where to start."""
+    previous = previous or {}
+    early_blend = previous.get("status") == "blended"
     from .remesh import _Clock
 
     parts: dict = {}
@@ -1084,11 +1087,13 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     # repeat its state
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
             and p.scale_mode == "adaptive" and not early and p.smoothing_fallback):
-        smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
+        smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it,
+                                       start=(previous.get("smoothing") or [None])[-1])
         if smoothed is not None:
-            stepper, S_a, found, _ = smoothed
+            stepper, S_a, found, steps = smoothed
             evaluations += found
             rec["kept"] = True
+            rec["smoothing"] = [[kind, dt] for kind, dt in steps]
             clock.lap("fallback")
     blended = None
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
@@ -1160,7 +1165,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
 
 
 def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: float, target: float, tol: float,
-                        history: list, it: int):
+                        history: list, it: int, *, start=None):
     """Backward-Euler smoothing steps from the stage's best state, for a stage where Eq. (5) stands still or climbs
     ``S``: ``(M - dt L) x' = M x + dt c 2 H_ref A n``, with ``L`` the cotangent Laplacian (``L x = -2 H A n``),
     ``M = A`` the vertex areas, ``H_ref`` the area mean of ``H`` and ``dt`` in squared mean edge lengths. ``c = 0`` is
@@ -1169,7 +1174,9 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
     tried in the order (mean curvature flow, with the mean) at ``dt = _FALLBACK_DT``, then at ``_FALLBACK_GROWTH``
     times that, up to ``_FALLBACK_DT_MAX``: a step that lowers ``S`` is kept and repeated, one that does not is undone
     and the next kind is tried (at most ``_FALLBACK_TRIES`` evaluations of ``S``); the last is searched back on its
-    chord into the window. Returns ``(stepper, S, evaluations, steps)`` with the smoothed state and the kept steps as
+    chord into the window. ``start``: the ``(kind, dt)`` that the previous stage's fallback ended with, where this
+    one starts (the ones before it come last): a state that needed a large ``dt`` (the hammer at 6,000 faces: 256)
+    needs it again, and each kind tried and undone costs an evaluation of ``S`` and a factorization. Returns ``(stepper, S, evaluations, steps)`` with the smoothed state and the kept steps as
     ``(kind, dt)`` (``"mcf"`` or ``"mean"``), or None when no step lowers ``S``."""
     from scipy.sparse.linalg import factorized
 
@@ -1181,6 +1188,9 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
     while dt <= _FALLBACK_DT_MAX:
         kinds += [("mcf", dt), ("mean", dt)]
         dt *= _FALLBACK_GROWTH
+    if start is not None and tuple(start) in kinds:
+        k = kinds.index(tuple(start))
+        kinds = kinds[k:] + kinds[:k]
     solvers = {_FALLBACK_DT: smoother.solve}
     x_a = wp.clone(smoother.x)
     S_best, evaluations, steps, k = S_a, 0, [], 0
