@@ -9,8 +9,17 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   inward or outward), added in a fixed order (:func:`reference_mean`) so that a run repeats bit for bit.
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
-  stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
-  ``eta`` times the vertex's own mean incident edge length. The rule is unit-free. **Descent**: a run of steps
+  stability, then held for the stage so moves shrink as the surface converges, except that it doubles
+  (``step_growth``) after each run of steps that lowered ``S``, up to the uncapped rule, until the stage first
+  backtracks; every move is clamped to ``eta`` times the vertex's own mean incident edge length. The rule is
+  unit-free. **Why late stages stalled**: near a sphere ``q90`` is ~0.003, so the rule asks for 80-120 edge lengths
+  and ``lambda`` sits at the cap; VNC-soft's ``H`` is proportional to the edge length, so a step moved the median
+  vertex by ~0.008 of an edge (none at the clamp; nefertiti stage 30 at 6,000 and 24,000 faces, CPU), and the
+  iterations a stage needs grow with the face count: 47 at stage 31 at 6,000 faces, the full ``max_iters`` = 300
+  and the fallbacks at 50,000 (H200, 25fa345). Four times the cap lowered ``S`` 2.8 times as fast per step at
+  24,000 faces but climbed at 6,000, so the step is grown where it holds rather than the cap raised. A stage that
+  still cannot reach its window in the iterations left, at the rate of its last ``2 eval_max`` iterations, goes to
+  the fallbacks at once (``early_fallback``; said in its ``exception``). **Descent**: a run of steps
   that takes ``S`` more than ``_RISE`` (5 %) above its segment's start is not a descent step of Eq. (5): the
   stage goes back to its best state and halves the step (``lambda`` and every move clamp), a backtracking line
   search on ``S`` (within 5 % it goes on: a remeshed state is re-smoothed first, and ``S`` moves by a few
