@@ -18,8 +18,8 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   iterations a stage needs grow with the face count: 47 at stage 31 at 6,000 faces, the full ``max_iters`` = 300
   and the fallbacks at 50,000 (H200, 25fa345). Four times the cap lowered ``S`` 2.8 times as fast per step at
   24,000 faces but climbed at 6,000, so the step is grown where it holds rather than the cap raised. A stage that
-  still cannot reach its window in the iterations left, at the rate of its last ``2 eval_max`` iterations, goes to
-  the fallbacks at once (``early_fallback``; said in its ``exception``). **Descent**: a run of steps
+  clearly cannot reach its window in the iterations left (twice over, at the rate of its last ``2 eval_max``
+  iterations) goes to the fallbacks at once (``early_fallback``; said in its ``exception``). **Descent**: a run of steps
   that takes ``S`` more than ``_RISE`` (5 %) above its segment's start is not a descent step of Eq. (5): the
   stage goes back to its best state and halves the step (``lambda`` and every move clamp), a backtracking line
   search on ``S`` (within 5 % it goes on: a remeshed state is re-smoothed first, and ``S`` moves by a few
@@ -167,6 +167,12 @@ _BLEND_TRIALS = 10
 # blend at once, without max_iters and the smoothing fallback (hammer on the H200: each held stage took 300 iterations
 # and ~42 evaluations, 2.5 s)
 _EARLY_STALE = 3
+# A stage goes to its fallbacks early (FlowParams.early_fallback) when Eq. (5), at its recent rate, would need more than
+# this many times the iterations left: a fallback costs ~10 evaluations of S and its state's next remesh raised t by
+# 0.04-0.17 (hammer and mushroom at 6,000 faces), so only a clear shortfall is cut (mushroom at 6,000 faces: a margin
+# of 1 cut stages 24 and 26 at 321 and 256 iterations needed for 245 and 234 left, where the code of b0571a3 landed
+# every stage with Eq. (5), 132 iterations at most)
+_CUT_MARGIN = 2.0
 # ... blending toward the moment ellipsoid, then toward the sphere of its volume (see _EllipsoidBlend's roundness)
 _BLEND_ROUNDNESS = (0.0, 1.0)
 
@@ -266,8 +272,8 @@ class FlowParams:
             steps (see the module docstring; False: an ablation).
         blend_fallback: ... and where those too end short, by the blend toward the moment ellipsoid.
         early_fallback: a stage whose step can grow no further (``step_growth``) and whose best ``S``, at the rate it
-            fell over the last ``2 eval_max`` iterations, would not reach the window within ``max_iters`` goes to the
-            fallbacks at once (its ``exception`` says so, with the iterations it would have needed) instead of
+            fell over the last ``2 eval_max`` iterations (since its last backtrack), would need more than twice the
+            iterations left before ``max_iters`` to reach the window goes to the fallbacks at once (its ``exception`` says so, with the iterations it would have needed) instead of
             after ``max_iters`` and the stall remeshes on the way (False: it runs them out, as before).
     """
 
@@ -952,7 +958,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     contact = remesher is not None and p.method == "vnc"
     last_valid = mesh
     rate = None
-    since, within, ahead = 0, [], p.eval_every // 2
+    since, within, ahead, steady = 0, [], p.eval_every // 2, 0
     early = False
     # a stage whose fallbacks can take it on goes to them as soon as Eq. (5) is seen to be too slow for its window
     cut, cut_ok = None, (not final and p.method == "vnc" and p.scale_mode == "adaptive" and p.early_fallback
@@ -1015,16 +1021,18 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 stepper.backtrack(x_a, part_a)
                 ahead = p.eval_every // 2
                 history.append([it, S_a])
+                steady = it
             if early_blend and stale >= _EARLY_STALE and not final and remesher is not None:
                 # a stage that starts from a blended state and makes no progress goes to the blend at once
                 early = True
                 status = "converged"
                 continue
             if cut_ok and descent and not stepper.can_grow():
-                need = _iterations_needed(history, since, it, S_a, target + tol, 2 * p.eval_max)
-                if need is not None and need > p.max_iters - it:
+                need = _iterations_needed(history, max(since, steady), it, S_a, target + tol, 2 * p.eval_max)
+                if need is not None and need > _CUT_MARGIN * (p.max_iters - it):
                     # Eq. (5) at its step (grown as far as it goes) cannot reach the window in the iterations left:
-                    # the fallback now, rather than after max_iters and the stall remeshes on the way
+                    # the fallback now, rather than after max_iters and the stall remeshes on the way. The rate is
+                    # measured since the last backtrack (a run of steps taken back leaves the best S where it was)
                     cut = (need, p.max_iters - it)
                     status = "converged"
                     continue
