@@ -231,7 +231,8 @@ class FlowParams:
             factor of two. It is where a stage starts: see ``step_growth``.
         step_growth: after each run of steps that lowered ``S`` by more than 0.1 %, ``lambda`` is multiplied by this,
             up to the step size rule's own value ``eta / q90`` (no ``max_lambda`` cap; not in the last stage), until
-            the stage first backtracks (a run of steps that raised ``S`` is taken back at half the step, see the module docstring);
+            the stage first backtracks (a run of steps that raised ``S`` is taken back at half the step, see the module
+            docstring);
             1 keeps ``lambda`` fixed for the stage. Late stages need it: near a sphere ``q90`` is small, ``lambda``
             sits at the cap, and since VNC-soft's ``H`` scales with the edge length, each step moves a vertex by
             ``max_lambda`` edge lengths times ``H``, about one hundredth of an edge; at 50k faces the stages took the
@@ -273,7 +274,8 @@ class FlowParams:
         blend_fallback: ... and where those too end short, by the blend toward the moment ellipsoid.
         early_fallback: a stage whose step can grow no further (``step_growth``) and whose best ``S``, at the rate it
             fell over the last ``2 eval_max`` iterations (since its last backtrack), would need more than twice the
-            iterations left before ``max_iters`` to reach the window goes to the fallbacks at once (its ``exception`` says so, with the iterations it would have needed) instead of
+            iterations left before ``max_iters`` to reach the window goes to the fallbacks at once (its ``exception``
+            says so, with the iterations it would have needed) instead of
             after ``max_iters`` and the stall remeshes on the way (False: it runs them out, as before).
     """
 
@@ -1195,7 +1197,8 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
     and the next kind is tried (at most ``_FALLBACK_TRIES`` evaluations of ``S``); the last is searched back on its
     chord into the window. ``start``: the ``(kind, dt)`` that the previous stage's fallback ended with, where this
     one starts (the ones before it come last): a state that needed a large ``dt`` (the hammer at 6,000 faces: 256)
-    needs it again, and each kind tried and undone costs an evaluation of ``S`` and a factorization. Returns ``(stepper, S, evaluations, steps)`` with the smoothed state and the kept steps as
+    needs it again, and each kind tried and undone costs an evaluation of ``S`` and a factorization. Returns ``(stepper,
+    S, evaluations, steps)`` with the smoothed state and the kept steps as
     ``(kind, dt)`` (``"mcf"`` or ``"mean"``), or None when no step lowers ``S``."""
     from scipy.sparse.linalg import factorized
 
