@@ -709,3 +709,69 @@ def test_a_stage_eq5_and_smoothing_cannot_finish_is_blended():
     assert len(set(digests)) == len(digests)
     for m in traj.meshes:
         assert not surface_problems(m.vertices, m.faces)
+
+
+def test_a_stage_eq5_cannot_finish_goes_to_the_fallback_before_max_iters():
+    """Stage 1 of 2 (one sub-stage, t 1 -> 0.5) with a step 1/120 of the default cap (``max_lambda`` 0.05, no
+    ``step_growth``), ``max_iters`` 80: Eq. (5) lowers S, far too slowly for the window. Before, such a stage ran all
+    80 iterations and then the fallback (and on the H200, 50k faces, 300 iterations, stall remeshes and all). Now the
+    rate over its last 32 iterations tells it early: it goes to the fallback before ``max_iters``, says so in its
+    exception, and still lands in its window (S recomputed by total_complexity from the recorded state)."""
+    shape = random_shape(3, subdivisions=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        traj = flow(shape, stages=2, faces=1500, device="cpu", progress=False, max_iters=80, max_lambda=0.05,
+                    step_growth=1.0, substage_budget=0.5)
+    rec = traj.records[1]
+    assert rec["iterations"] < 80, (rec["iterations"], rec["exception"])
+    assert rec["status"] in ("smoothed", "blended"), (rec["status"], rec["exception"])
+    assert "would need" in rec["exception"]
+    S = total_complexity(traj.meshes[1], np.asarray(traj.info["taus"]), device="cpu")
+    assert abs(S / traj.info["S_init"] - 0.5) <= 0.005 + 1e-4, S / traj.info["S_init"]
+    assert abs(rec["t"] - 0.5) <= 0.005 + 1e-9
+
+
+def test_the_step_grows_where_it_holds_so_a_slow_stage_takes_fewer_iterations():
+    """The same stage at the same small cap (``max_lambda`` 0.05), fallbacks off: with ``step_growth`` 2 the step
+    doubles after every run of steps that lowers S (up to the step size rule's eta / q90), so Eq. (5) itself lands
+    stage 1 in its window (status ``budget``), where with ``step_growth`` 1 (lambda fixed for the stage, as before)
+    it is still above it after ``max_iters`` = 80. Every recorded state is a valid surface."""
+    shape = random_shape(3, subdivisions=3)
+    runs = {}
+    for growth in (1.0, 2.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            runs[growth] = flow(shape, stages=2, faces=1500, device="cpu", progress=False, max_iters=80,
+                                max_lambda=0.05, step_growth=growth, substage_budget=0.5, smoothing_fallback=False,
+                                blend_fallback=False, early_fallback=False)
+    fixed, grown = runs[1.0].records[1], runs[2.0].records[1]
+    assert fixed["status"] == "max_iters" and fixed["t"] > 0.5 + 0.005, (fixed["status"], fixed["t"])
+    assert grown["status"] == "budget" and abs(grown["t"] - 0.5) <= 0.005 + 1e-9, (grown["status"], grown["t"])
+    assert grown["iterations"] < 80
+    for m in runs[2.0].meshes:
+        assert not surface_problems(m.vertices, m.faces)
+
+
+def test_the_smoothing_fallback_starts_where_the_previous_stage_s_ended():
+    """The capsule hammer of the test above: from the ``(kind, dt)`` that a first fallback ended with (the previous
+    stage's, recorded in its ``smoothing``), a second fallback on the same state lands in the same window with fewer
+    evaluations of S (the kinds it skipped, each tried and undone before, come last), on a valid surface."""
+    from capsules import HAMMER, capsules
+
+    mesh = flow_mod._as_saved(vw.load_mesh(capsules(HAMMER, nodes=48)))
+    taus = vw.default_scales(mesh, 16)
+    p = flow_mod.FlowParams(stages=8)
+    S = flow_mod._Stepper(mesh, taus, p, "cpu").S_start
+    runs = []
+    for start in (None, "previous"):
+        stepper = flow_mod._Stepper(mesh, taus, p, "cpu")
+        out = flow_mod._smoothing_fallback(stepper, taus, p, "cpu", S, 0.9 * S, 0.005 * S, [], 0,
+                                           start=runs[0][3][-1] if start else None)
+        assert out is not None
+        runs.append(out)
+    (_, _, cold, steps), (smoother, S_warm, warm, _) = runs
+    assert steps[-1][1] > flow_mod._FALLBACK_DT, steps  # the first run had to climb the dt ladder
+    assert warm < cold, (warm, cold)
+    state = smoother.current()
+    assert abs(total_complexity(state, taus, device="cpu") - 0.9 * S) <= 0.005 * S
+    assert not surface_problems(state.vertices, state.faces)

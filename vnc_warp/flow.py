@@ -9,8 +9,17 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   inward or outward), added in a fixed order (:func:`reference_mean`) so that a run repeats bit for bit.
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
-  stability, then held for the stage so moves shrink as the surface converges; every move is clamped to
-  ``eta`` times the vertex's own mean incident edge length. The rule is unit-free. **Descent**: a run of steps
+  stability, then held for the stage so moves shrink as the surface converges, except that it doubles
+  (``step_growth``) after each run of steps that lowered ``S``, up to the uncapped rule, until the stage first
+  backtracks; every move is clamped to ``eta`` times the vertex's own mean incident edge length. The rule is
+  unit-free. **Why late stages stalled**: near a sphere ``q90`` is ~0.003, so the rule asks for 80-120 edge lengths
+  and ``lambda`` sits at the cap; VNC-soft's ``H`` is proportional to the edge length, so a step moved the median
+  vertex by ~0.008 of an edge (none at the clamp; nefertiti stage 30 at 6,000 and 24,000 faces, CPU), and the
+  iterations a stage needs grow with the face count: 47 at stage 31 at 6,000 faces, the full ``max_iters`` = 300
+  and the fallbacks at 50,000 (H200, 25fa345). Four times the cap lowered ``S`` 2.8 times as fast per step at
+  24,000 faces but climbed at 6,000, so the step is grown where it holds rather than the cap raised. A stage that
+  clearly cannot reach its window in the iterations left (twice over, at the rate of its last ``2 eval_max``
+  iterations) goes to the fallbacks at once (``early_fallback``; said in its ``exception``). **Descent**: a run of steps
   that takes ``S`` more than ``_RISE`` (5 %) above its segment's start is not a descent step of Eq. (5): the
   stage goes back to its best state and halves the step (``lambda`` and every move clamp), a backtracking line
   search on ``S`` (within 5 % it goes on: a remeshed state is re-smoothed first, and ``S`` moves by a few
@@ -158,6 +167,12 @@ _BLEND_TRIALS = 10
 # blend at once, without max_iters and the smoothing fallback (hammer on the H200: each held stage took 300 iterations
 # and ~42 evaluations, 2.5 s)
 _EARLY_STALE = 3
+# A stage goes to its fallbacks early (FlowParams.early_fallback) when Eq. (5), at its recent rate, would need more than
+# this many times the iterations left: a fallback costs ~10 evaluations of S and its state's next remesh raised t by
+# 0.04-0.17 (hammer and mushroom at 6,000 faces), so only a clear shortfall is cut (mushroom at 6,000 faces: a margin
+# of 1 cut stages 24 and 26 at 321 and 256 iterations needed for 245 and 234 left, where the code of b0571a3 landed
+# every stage with Eq. (5), 132 iterations at most)
+_CUT_MARGIN = 2.0
 # ... blending toward the moment ellipsoid, then toward the sphere of its volume (see _EllipsoidBlend's roundness)
 _BLEND_ROUNDNESS = (0.0, 1.0)
 
@@ -213,7 +228,15 @@ class FlowParams:
         step_fraction: eta of the step size rule (fraction of the mean edge length per iteration).
         max_lambda: stability cap on lambda, in mean edge lengths per radian of curvature deviation. The
             explicit step diverges above about 12-16 (measured on Spot with the default scales); 6 keeps a
-            factor of two.
+            factor of two. It is where a stage starts: see ``step_growth``.
+        step_growth: after each run of steps that lowered ``S`` by more than 0.1 %, ``lambda`` is multiplied by this,
+            up to the step size rule's own value ``eta / q90`` (no ``max_lambda`` cap; not in the last stage), until
+            the stage first backtracks (a run of steps that raised ``S`` is taken back at half the step, see the module
+            docstring);
+            1 keeps ``lambda`` fixed for the stage. Late stages need it: near a sphere ``q90`` is small, ``lambda``
+            sits at the cap, and since VNC-soft's ``H`` scales with the edge length, each step moves a vertex by
+            ``max_lambda`` edge lengths times ``H``, about one hundredth of an edge; at 50k faces the stages took the
+            full ``max_iters`` (issue 21, H200 at 25fa345).
         phi_fraction: Eq. (6) budget as a fraction of the stage's mean per-vertex VNC-AUC.
         tube_rho: where the shape factor ``rho`` (thickness along the inward normal times the mean curvature
             at the largest scale: 1 on a tube, 2 on a ball) is at most this, the part-scale excess of curvature
@@ -249,6 +272,11 @@ class FlowParams:
         smoothing_fallback: a stage that Eq. (5) leaves short of its window is taken on by implicit smoothing
             steps (see the module docstring; False: an ablation).
         blend_fallback: ... and where those too end short, by the blend toward the moment ellipsoid.
+        early_fallback: a stage whose step can grow no further (``step_growth``) and whose best ``S``, at the rate it
+            fell over the last ``2 eval_max`` iterations (since its last backtrack), would need more than twice the
+            iterations left before ``max_iters`` to reach the window goes to the fallbacks at once (its ``exception``
+            says so, with the iterations it would have needed) instead of
+            after ``max_iters`` and the stall remeshes on the way (False: it runs them out, as before).
     """
 
     stages: int = 32
@@ -257,6 +285,8 @@ class FlowParams:
     kappa: float = 6.0
     step_fraction: float = 0.25
     max_lambda: float = 6.0
+    step_growth: float = 2.0
+    early_fallback: bool = True
     phi_fraction: float = 0.5
     tube_rho: float = 1.2
     ball_rho: float = 1.8
@@ -285,6 +315,8 @@ class FlowParams:
             raise ValueError(f"scale_mode must be adaptive, small or large, got {self.scale_mode!r}")
         if self.method not in ("vnc", "mcf_explicit", "mcf_implicit"):
             raise ValueError(f"method must be vnc, mcf_explicit or mcf_implicit, got {self.method!r}")
+        if not self.step_growth >= 1.0:
+            raise ValueError(f"step_growth must be >= 1, got {self.step_growth}")
         for name in ("step_fraction", "phi_fraction", "kappa", "tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
@@ -519,6 +551,8 @@ class _Stepper:
         self.engine = _Engine(mesh, taus, p.kappa, device)
         self.partial = wp.empty(_k.MEAN_PARTS, dtype=wp.float64, device=device)
         self.lam = None
+        self.lam_rule = None
+        self.backtracked = False
         self.S_start = None
         self.move_scale = 1.0
         V = mesh.num_vertices
@@ -594,7 +628,8 @@ class _Stepper:
             V = self.mesh.num_vertices
             if self.lam is None:
                 q = _quantile90(H, self.ref)
-                self.lam = self.step_scale * min(p.step_fraction / q if q > 0 else 0.0, p.max_lambda) * self.edge
+                self.lam_rule = self.step_scale * (p.step_fraction / q if q > 0 else 0.0) * self.edge
+                self.lam = min(self.lam_rule, self.step_scale * p.max_lambda * self.edge)
             wp.launch(_k.balanced_step, dim=V,
                       inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part],
                       outputs=[self.x_next], device=self.device)
@@ -612,10 +647,25 @@ class _Stepper:
         every vertex's move clamp, so that each move of Eq. (5) is half what it was."""
         wp.copy(self.x, x)
         wp.copy(self.part, part)
+        self.backtracked = True
         self.move_scale *= 0.5
         self.lam *= 0.5
         self.max_move = wp.array(np.float32(self.p.step_fraction * self.move_scale) * self.local, dtype=wp.float32,
                                  device=self.device)
+
+    def can_grow(self) -> bool:
+        """Whether :meth:`grow` would still enlarge the step."""
+        return (self.lam is not None and not self.backtracked and self.lam < self.lam_rule
+                and self.p.step_growth > 1.0)
+
+    def grow(self) -> bool:
+        """After a run of steps that lowered ``S``: multiply ``lambda`` by ``step_growth``, up to the step size rule's
+        own value (the 90th-percentile vertex moves ``eta`` mean edge lengths, without the ``max_lambda`` cap), and
+        never again in a stage that backtracked. Returns whether it grew."""
+        if not self.can_grow():
+            return False
+        self.lam = min(self.lam * self.p.step_growth, self.lam_rule)
+        return True
 
     def complexity(self) -> float:
         """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
@@ -784,7 +834,7 @@ def flow(
                     cur = state
                 state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
                                       goal=((i - 1) * m + j) / (p.stages * m),
-                                      early_blend=(subs[-1] if subs else traj.records[-1])["status"] == "blended")
+                                      previous=subs[-1] if subs else traj.records[-1])
                 subs.append(sub)
                 if j < m:
                     state = _as_saved(state, origin)
@@ -877,11 +927,14 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
 
 
 def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None, *,
-               goal: float | None = None, early_blend: bool = False):
+               goal: float | None = None, previous: dict | None = None):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
     ``1 - goal`` (default ``goal = i/N``; a sub-stage's is a fraction in between; see the module docstring); fills
     ``rec`` and returns the state and its device positions. A stage that stalls is remeshed on the way
-    (``remesher``, if any; ``stall_remeshes``)."""
+    (``remesher``, if any; ``stall_remeshes``). ``previous``: the record of the stage (or sub-stage) before, whose
+    fallback tells this one's where to start."""
+    previous = previous or {}
+    early_blend = previous.get("status") == "blended"
     from .remesh import _Clock
 
     parts: dict = {}
@@ -907,8 +960,11 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     contact = remesher is not None and p.method == "vnc"
     last_valid = mesh
     rate = None
-    since, within, ahead = 0, [], p.eval_every // 2
+    since, within, ahead, steady = 0, [], p.eval_every // 2, 0
     early = False
+    # a stage whose fallbacks can take it on goes to them as soon as Eq. (5) is seen to be too slow for its window
+    cut, cut_ok = None, (not final and p.method == "vnc" and p.scale_mode == "adaptive" and p.early_fallback
+                         and (p.smoothing_fallback or (p.blend_fallback and remesher is not None)))
     if not final and S_a <= target + tol:
         status = "remesh"
     while status is None:
@@ -955,6 +1011,12 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 wp.copy(x_a, stepper.x)
                 if descent:
                     wp.copy(part_a, stepper.part)
+                if descent and not final and S_b < S_a * (1.0 - _PROGRESS):
+                    # the step held: the next run of steps may take larger ones (see FlowParams.step_growth). Not in
+                    # the last stage, which runs until S stops falling: there a grown step ended where float32
+                    # rounding decided (tests/test_flow.py, the flow far from the origin: t 0.0111 against 0.0076)
+                    if stepper.grow():
+                        rate *= p.step_growth
                 S_a, it_a = S_b, it
             elif descent and (S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init
                               or (S_a < S_seg and S_b > S_a + _CLIMB * tol)):
@@ -963,11 +1025,21 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 stepper.backtrack(x_a, part_a)
                 ahead = p.eval_every // 2
                 history.append([it, S_a])
+                steady = it
             if early_blend and stale >= _EARLY_STALE and not final and remesher is not None:
                 # a stage that starts from a blended state and makes no progress goes to the blend at once
                 early = True
                 status = "converged"
                 continue
+            if cut_ok and descent and not stepper.can_grow():
+                need = _iterations_needed(history, max(since, steady), it, S_a, target + tol, 2 * p.eval_max)
+                if need is not None and need > _CUT_MARGIN * (p.max_iters - it):
+                    # Eq. (5) at its step (grown as far as it goes) cannot reach the window in the iterations left:
+                    # the fallback now, rather than after max_iters and the stall remeshes on the way. The rate is
+                    # measured since the last backtrack (a run of steps taken back leaves the best S where it was)
+                    cut = (need, p.max_iters - it)
+                    status = "converged"
+                    continue
             if stale >= p.patience and it - since >= 4 * p.eval_max:
                 if final or remesher is None or p.method != "vnc" or len(within) >= p.stall_remeshes:
                     status = "final" if final else "converged"
@@ -1036,11 +1108,13 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     # repeat its state
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
             and p.scale_mode == "adaptive" and not early and p.smoothing_fallback):
-        smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it)
+        smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it,
+                                       start=(previous.get("smoothing") or [None])[-1])
         if smoothed is not None:
-            stepper, S_a, found, _ = smoothed
+            stepper, S_a, found, steps = smoothed
             evaluations += found
             rec["kept"] = True
+            rec["smoothing"] = [[kind, dt] for kind, dt in steps]
             clock.lap("fallback")
     blended = None
     if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
@@ -1076,12 +1150,17 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged"):
+        stop = f"too slow after {it} iterations" if cut is not None else f"{status} after {it} iterations"
+        if cut is not None:
+            exception = ((exception + "; ") if exception else "") + (
+                f"Eq. (5) at its rate over the last {2 * p.eval_max} iterations would need {cut[0]:.0f} more to reach "
+                f"the window, {cut[1]} were left: fallback at iteration {it}")
         if early:
             exception = ((exception + "; ") if exception else "") + (
                 f"from a blended state, no progress in {stale} evaluations; no smoothing tried")
         if smoothed is not None:
             exception = ((exception + "; ") if exception else "") + (
-                f"Eq. (5) did not descend ({status} after {it} iterations); {len(smoothed[3])} implicit smoothing "
+                f"Eq. (5) did not descend ({stop}); {len(smoothed[3])} implicit smoothing "
                 f"step(s) ({', '.join(f'{kind} dt {d:g}' for kind, d in smoothed[3])}; dt in squared edge lengths) "
                 f"took t to "
                 f"{smoothed[1] / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
@@ -1094,7 +1173,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         if blended is not None:
             if smoothed is None:
                 exception = ((exception + "; ") if exception else "") + (
-                    f"Eq. (5) did not descend ({status} after {it} iterations)")
+                    f"Eq. (5) did not descend ({stop})")
             exception += (f"; the SDF {blended[4].why_level_set} ({blended[2]} trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
             if abs(S_a - target) <= tol:
                 status = "blended"
@@ -1107,7 +1186,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
 
 
 def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: float, target: float, tol: float,
-                        history: list, it: int):
+                        history: list, it: int, *, start=None):
     """Backward-Euler smoothing steps from the stage's best state, for a stage where Eq. (5) stands still or climbs
     ``S``: ``(M - dt L) x' = M x + dt c 2 H_ref A n``, with ``L`` the cotangent Laplacian (``L x = -2 H A n``),
     ``M = A`` the vertex areas, ``H_ref`` the area mean of ``H`` and ``dt`` in squared mean edge lengths. ``c = 0`` is
@@ -1116,7 +1195,10 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
     tried in the order (mean curvature flow, with the mean) at ``dt = _FALLBACK_DT``, then at ``_FALLBACK_GROWTH``
     times that, up to ``_FALLBACK_DT_MAX``: a step that lowers ``S`` is kept and repeated, one that does not is undone
     and the next kind is tried (at most ``_FALLBACK_TRIES`` evaluations of ``S``); the last is searched back on its
-    chord into the window. Returns ``(stepper, S, evaluations, steps)`` with the smoothed state and the kept steps as
+    chord into the window. ``start``: the ``(kind, dt)`` that the previous stage's fallback ended with, where this
+    one starts (the ones before it come last): a state that needed a large ``dt`` (the hammer at 6,000 faces: 256)
+    needs it again, and each kind tried and undone costs an evaluation of ``S`` and a factorization. Returns ``(stepper,
+    S, evaluations, steps)`` with the smoothed state and the kept steps as
     ``(kind, dt)`` (``"mcf"`` or ``"mean"``), or None when no step lowers ``S``."""
     from scipy.sparse.linalg import factorized
 
@@ -1128,6 +1210,9 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
     while dt <= _FALLBACK_DT_MAX:
         kinds += [("mcf", dt), ("mean", dt)]
         dt *= _FALLBACK_GROWTH
+    if start is not None and tuple(start) in kinds:
+        k = kinds.index(tuple(start))
+        kinds = kinds[k:] + kinds[:k]
     solvers = {_FALLBACK_DT: smoother.solve}
     x_a = wp.clone(smoother.x)
     S_best, evaluations, steps, k = S_a, 0, [], 0
@@ -1238,6 +1323,18 @@ def _ellipsoid_blend(stepper: _Stepper, taus, p: FlowParams, device, remesher, S
         return None
     st, S, a, report, _ = best
     return st, S, trials, a, report
+
+
+def _iterations_needed(history: list, since: float, it: int, S_a: float, S_goal: float, window: int) -> float | None:
+    """The iterations Eq. (5) needs to take its best ``S_a`` down to ``S_goal`` at the rate it lowered its best ``S``
+    over its last ``window`` iterations (``history``'s ``[iteration, S]`` since the segment's start ``since``): a
+    linear extrapolation of a decay that slows down, so a lower bound. None while the segment is shorter than
+    ``window`` or its best ``S`` did not fall over it (a stall: see ``patience``)."""
+    back = [S for j, S in history if since <= j <= it - window]
+    if not back:
+        return None
+    fell = min(back) - S_a
+    return (S_a - S_goal) * (it - max(j for j, _ in history if since <= j <= it - window)) / fell if fell > 0 else None
 
 
 def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, target: float, tol: float,
