@@ -81,6 +81,8 @@ def _exception(rec: dict, n: int) -> str | None:
     for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
         if rm and rm.get("euler") != rm.get("euler_in"):
             return "topology change"
+    if rec.get("status") == "bridge jump":
+        return "jump along the bridge"
     if "self-intersection" in (rec.get("exception") or ""):
         return "self-intersection"
     return None
@@ -106,7 +108,7 @@ def summarize(traj, n: int) -> dict:
     # a stage holds the previous stage's state when its vertices are that state's, or when it took no step of
     # Eq. (5): then it is that state re-tessellated by the remesh between stages, new vertices, the same shape
     same = [i for i, (m, prev, r) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1], recs[1:]), start=1)
-            if r.get("iterations") == 0
+            if (r.get("iterations") == 0 and not r.get("bridge") and not r.get("from_bridge"))
             or (m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices))]
     return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
             "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},

@@ -826,6 +826,13 @@ def flow(
                         and before[2] >= S_init * (1.0 - i / p.stages - p.tolerance)):
                     q = _as_saved(state, origin)
                     bridged, why = _bridge(remesher, before, q, rec, i, taus, S_init, p, device)
+                    if not bridged and before[3] == "the remesh between stages" and i >= 2:
+                        # the previous state's own level set is the remeshed one (its parts met: a self-intersection
+                        # the remesh joined): from the stage before it instead
+                        earlier = _as_saved(traj.meshes[-2], origin)
+                        bridged, _ = _bridge(remesher, (earlier, None, traj.records[-2]["S"],
+                                                        f"the remesh of stage {i - 1}'s state (from stage {i - 2}'s)"),
+                                             q, rec, i, taus, S_init, p, device)
                     if bridged:
                         (state, rec), pending, after_bridge = bridged[0], bridged[1:], q
                     else:
