@@ -78,6 +78,16 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   is still above the previous stage's (a near-sphere whose remesh raised ``S`` by more than the last stage
   can win back) keeps the previous state and ``t`` (status ``held``, the reason in ``exception``), except
   on a shape with a handle (Euler characteristic below 2), whose ``S`` must rise until the hole closes.
+* **Bridge** (``bridge``): a remesh, between stages or within one, that takes ``t`` from a state ``P`` in or above
+  stage ``i``'s window to a state ``Q`` below it (boot's eyelets closing in one level-set remesh) fills the stages
+  whose windows lie between them with states on the path from ``P`` to ``Q``: the zero level set of
+  ``(1 - a) f_P + a f_Q`` (signed distances on one grid, :class:`vnc_warp.remesh._SurfaceBlend`), ``a`` searched
+  per stage (status ``bridged``, ``a`` and the trials in the record's ``bridge``); the flow goes on from ``Q``. A
+  genus change along the path that makes ``t`` jump across a window is that stage's exception (status
+  ``bridge jump``: the first state past the jump); the stages before and after it are normal. Where ``t`` jumps at
+  ``a = 0+`` (``P``'s own level set is ``Q``: its parts met) the bridge is retried from the stage before ``P``,
+  and failing that the stage records ``Q`` as before, with the reason (see :func:`_bridge`,
+  ``docs/flow_balance.md``).
 * **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages, one
   remesher for the whole trajectory, kept on the device; its report (path, Euler characteristic, components
   dropped, repairs, seconds per part) is the stage record's ``remesh``. **Parts that meet**: at every evaluation
@@ -704,6 +714,13 @@ def flow(
             stage. The folder is checked before anything is computed.
         progress: show a progress bar (stage, iterations, t, seconds).
         **params: any other :class:`FlowParams` field.
+
+    Remesh jumps and genus changes: a remesh that takes ``t`` below a stage's window is bridged (the skipped stages
+    are states on the level-set path from the state before the remesh to the one after it, status ``bridged``); a
+    genus change along that path that jumps across a window is recorded as that stage's exception (status
+    ``bridge jump``), and a remesh whose path jumps at once keeps today's record (status ``remesh``, the reason in
+    ``exception``). A genus change by a remesh that leaves ``t`` in or above the window is recorded in
+    ``exception`` as before. See the module docstring.
 
     Returns:
         The :class:`Trajectory` (N+1 meshes unless a baseline collapsed first).
