@@ -132,11 +132,13 @@ def test_a_long_stage_is_flowed_in_sub_stages_as_the_finer_flow(shape):
     """With ``substage_budget = 1/4``, N = 2 flows each stage in two sub-stages (remeshed and given their adaptive
     scales as stages are) and records the second: its states are the N = 4 flow's stages 2 and 4 bit for bit, its
     records sum the sub-stages' iterations, and each lands within 0.02 of its own target (issue 21: at N = 8 on an
-    H200 a body's stages ran out of iterations 0.1-0.2 short of their targets, Spot's ears thinned to 0.06)."""
+    H200 a body's stages ran out of iterations 0.1-0.2 short of their targets, Spot's ears thinned to 0.06). Without
+    the bridge: it fills recorded stages only (the N = 4 flow's stage 3, which a remesh skips on this shape, is
+    bridged and stage 4 flows on from the remeshed state; the N = 2 flow records no stage there to bridge)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fine = flow(shape, stages=4, device="cpu", progress=False, substage_budget=0.25)
-        coarse = flow(shape, stages=2, device="cpu", progress=False, substage_budget=0.25)
+        fine = flow(shape, stages=4, device="cpu", progress=False, substage_budget=0.25, bridge=False)
+        coarse = flow(shape, stages=2, device="cpu", progress=False, substage_budget=0.25, bridge=False)
     assert all("substages" not in r for r in fine.records)
     for i in (1, 2):
         rec = coarse.records[i]
