@@ -943,7 +943,7 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
     out, lo, S_lo, j, landed = [], 0.0, S_p, i, 0
     while j < p.stages and S_q < S_init * (1.0 - j / p.stages) - tol:
         target = S_init * (1.0 - j / p.stages)
-        hi, S_hi, side, trials, history, found = 1.0, S_q, 0, 0, [], None
+        hi, S_hi, side, trials, history, found = 1.0, S_q, 0, 0, [[0, S_lo]], None
         while trials < _BRIDGE_TRIALS and hi - lo > _BRIDGE_GAP:
             gap = S_lo - S_hi
             theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 else 0.5 * (lo + hi)
