@@ -81,6 +81,8 @@ def _exception(rec: dict, n: int) -> str | None:
     for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
         if rm and rm.get("euler") != rm.get("euler_in"):
             return "topology change"
+    if rec.get("status") == "bridge jump":
+        return "jump along the bridge"
     if "self-intersection" in (rec.get("exception") or ""):
         return "self-intersection"
     return None
@@ -106,7 +108,7 @@ def summarize(traj, n: int) -> dict:
     # a stage holds the previous stage's state when its vertices are that state's, or when it took no step of
     # Eq. (5): then it is that state re-tessellated by the remesh between stages, new vertices, the same shape
     same = [i for i, (m, prev, r) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1], recs[1:]), start=1)
-            if r.get("iterations") == 0
+            if (r.get("iterations") == 0 and not r.get("bridge") and not r.get("from_bridge"))
             or (m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices))]
     return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
             "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
@@ -174,6 +176,24 @@ def warm_up(device) -> float:
     return time.perf_counter() - t0
 
 
+def _overrides(pairs: list[str]) -> dict:
+    """``--set FIELD=VALUE`` as FlowParams keyword arguments, each VALUE read as its field's type."""
+    import dataclasses
+
+    from vnc_warp.flow import FlowParams
+
+    fields = {f.name: f for f in dataclasses.fields(FlowParams)}
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in fields:
+            raise SystemExit(f"bench.flow_report: --set {pair}: expected FIELD=VALUE with FIELD one of "
+                             f"{', '.join(sorted(fields))}")
+        kind = type(fields[key].default)
+        out[key] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+    return out
+
+
 def _run(path, variant, params, args):
     from vnc_warp.flow import flow
     from vnc_warp.mesh import load_mesh
@@ -192,7 +212,7 @@ def _run(path, variant, params, args):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         traj = flow(path, stages=args.stages, faces=faces, device=args.device, progress=False,
-                    max_iters=args.max_iters, out_dir=out_dir, **params)
+                    max_iters=args.max_iters, out_dir=out_dir, **(params | _overrides(args.set)))
     seconds = time.perf_counter() - t0
     keep = ("index", "t", "target_t", "iterations", "evaluations", "seconds", "sphericity", "thickness",
             "thickness_ratio", "euler", "status", "exception", "vertices", "faces")
@@ -295,6 +315,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-faces", type=int, default=50_000,
                    help="cap on each input's face count (the paper's 50k); 0: no cap")
     p.add_argument("--max-iters", type=int, default=300)
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="FlowParams fields for every run (an ablation), e.g. --set step_growth=1.0 bridge=False")
     p.add_argument("--device", default=None)
     p.add_argument("--max-minutes", type=float, default=7.0,
                    help="skip a mesh when the runs so far say it would end after this many minutes")

@@ -287,3 +287,15 @@ def blend_ellipsoid_grid(grid: wp.array3d(dtype=float), origin: wp.vec3, spacing
     if wp.abs(d) < min_abs:
         d = wp.where(d < 0.0, -min_abs, min_abs)
     out[i, j, k] = d
+
+
+@wp.kernel(enable_backward=False)
+def blend_grids(f: wp.array3d(dtype=float), g: wp.array3d(dtype=float), a: float, min_abs: float,
+                out: wp.array3d(dtype=float)):
+    """Per grid node: ``(1 - a) f + a g`` of two signed-distance grids on the same nodes; values within ``min_abs`` of
+    zero are pushed off it as in :func:`push_off_zero`."""
+    i, j, k = wp.tid()
+    d = (1.0 - a) * f[i, j, k] + a * g[i, j, k]
+    if wp.abs(d) < min_abs:
+        d = wp.where(d < 0.0, -min_abs, min_abs)
+    out[i, j, k] = d

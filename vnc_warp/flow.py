@@ -87,6 +87,16 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   is still above the previous stage's (a near-sphere whose remesh raised ``S`` by more than the last stage
   can win back) keeps the previous state and ``t`` (status ``held``, the reason in ``exception``), except
   on a shape with a handle (Euler characteristic below 2), whose ``S`` must rise until the hole closes.
+* **Bridge** (``bridge``): a remesh, between stages or within one, that takes ``t`` from a state ``P`` in or above
+  stage ``i``'s window to a state ``Q`` below it (boot's eyelets closing in one level-set remesh) fills the stages
+  whose windows lie between them with states on the path from ``P`` to ``Q``: the zero level set of
+  ``(1 - a) f_P + a f_Q`` (signed distances on one grid, :class:`vnc_warp.remesh._SurfaceBlend`), ``a`` searched
+  per stage (status ``bridged``, ``a`` and the trials in the record's ``bridge``); the flow goes on from ``Q``. A
+  genus change along the path that makes ``t`` jump across a window is that stage's exception (status
+  ``bridge jump``: the first state past the jump); the stages before and after it are normal. Where ``t`` jumps at
+  ``a = 0+`` (``P``'s own level set is ``Q``: its parts met) the bridge is retried from the stage before ``P``,
+  and failing that the stage records ``Q`` as before, with the reason (see :func:`_bridge`,
+  ``docs/flow_balance.md``).
 * **Topology regularization**: :func:`vnc_warp.remesh.sdf_remesh` before stage 0 and between stages, one
   remesher for the whole trajectory, kept on the device; its report (path, Euler characteristic, components
   dropped, repairs, seconds per part) is the stage record's ``remesh``. **Parts that meet**: at every evaluation
@@ -175,6 +185,13 @@ _EARLY_STALE = 3
 _CUT_MARGIN = 2.0
 # ... blending toward the moment ellipsoid, then toward the sphere of its volume (see _EllipsoidBlend's roundness)
 _BLEND_ROUNDNESS = (0.0, 1.0)
+# A remesh that takes t below a stage's window is bridged (_bridge) on a grid this many times finer than the
+# remesher's, so that the features the remesher's level set lost (boot's eyelets) are on the path at a = 0 ...
+_BRIDGE_REFINE = 2.0
+# ... with at most this many blends (values of a) per bridged stage, and a jump across a window located to this share
+# of the path
+_BRIDGE_TRIALS = 8
+_BRIDGE_GAP = 0.01
 
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
@@ -277,6 +294,10 @@ class FlowParams:
             iterations left before ``max_iters`` to reach the window goes to the fallbacks at once (its ``exception``
             says so, with the iterations it would have needed) instead of
             after ``max_iters`` and the stall remeshes on the way (False: it runs them out, as before).
+        bridge: a remesh (between stages or within one) that takes ``t`` below the stage's window is bridged: the
+            stages whose targets it skipped are filled with states on the level-set path from the state before the
+            remesh to the state after it (see the module docstring; False: today's behaviour before the bridge, the
+            remeshed state recorded and the skipped stages held). Default True.
     """
 
     stages: int = 32
@@ -305,6 +326,7 @@ class FlowParams:
     mcf_dt: float | None = None
     smoothing_fallback: bool = True
     blend_fallback: bool = True
+    bridge: bool = True
 
     def __post_init__(self):
         if self.stages < 1:
@@ -743,6 +765,13 @@ def flow(
         progress: show a progress bar (stage, iterations, t, seconds).
         **params: any other :class:`FlowParams` field.
 
+    Remesh jumps and genus changes: a remesh that takes ``t`` below a stage's window is bridged (the skipped stages
+    are states on the level-set path from the state before the remesh to the one after it, status ``bridged``); a
+    genus change along that path that jumps across a window is recorded as that stage's exception (status
+    ``bridge jump``), and a remesh whose path jumps at once keeps today's record (status ``remesh``, the reason in
+    ``exception``). A genus change by a remesh that leaves ``t`` in or above the window is recorded in
+    ``exception`` as before. See the module docstring.
+
     Returns:
         The :class:`Trajectory` (N+1 meshes unless a baseline collapsed first).
 
@@ -815,6 +844,9 @@ def flow(
 
         bar = tqdm(total=p.stages, initial=len(traj.meshes) - 1, desc=f"VNC-Flow {name}", unit="stage")
     try:
+        # the bridged stages made and not yet recorded, and the state after the bridged remesh that the stage after
+        # them flows from (see _bridge); a run resumed inside a bridge goes on from its last recorded state instead
+        pending, after_bridge = [], None
         while len(traj.meshes) <= p.stages and traj.records[-1]["status"] != "collapsed":
             i = len(traj.meshes)
             t0 = time.perf_counter()
@@ -822,27 +854,57 @@ def flow(
             prev = traj.meshes[-1]
             if not np.array_equal(prev.origin, origin):  # read from disk: into the trajectory's frame
                 prev = _as_saved(prev, origin)
-            subs, state = [], prev
-            for j in range(1, m + 1):
-                # sub-stage j of m (m = 1 unless a stage's budget exceeds substage_budget): remeshed, given its
-                # adaptive scales and flowed as a stage is, to 1 - ((i - 1) m + j) / (N m)
-                sub = {"index": i}
-                if remesher is not None and (i > 1 or j > 1):
-                    cur, report = remesher(positions=wp.array(state.local_vertices, dtype=wp.vec3, device=device))
-                    sub["remesh"] = report.to_dict()
-                else:
-                    cur = state
-                state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
-                                      goal=((i - 1) * m + j) / (p.stages * m),
-                                      previous=subs[-1] if subs else traj.records[-1])
-                subs.append(sub)
-                if j < m:
-                    state = _as_saved(state, origin)
-                    if remesher is not None and sub.pop("kept", False):
-                        remesher.adopt(state, traj.info["remesh_spacing"], name)
-            rec = _merge_substages(subs)
             last = traj.records[-1]
-            if adaptive and rec["S"] > last["S"] and _euler(prev) == 2:
+            if pending:
+                state, rec = pending.pop(0)
+            else:
+                subs, state = [], prev
+                # the state before the stage's last remesh and its S: where a bridge starts
+                before = (prev, None, last["S"], "the remesh between stages")
+                for j in range(1, m + 1):
+                    # sub-stage j of m (m = 1 unless a stage's budget exceeds substage_budget): remeshed, given its
+                    # adaptive scales and flowed as a stage is, to 1 - ((i - 1) m + j) / (N m)
+                    sub = {"index": i}
+                    if after_bridge is not None and j == 1:
+                        # the stages skipped by a remesh were bridged: on from the state that remesh made
+                        cur, after_bridge = after_bridge, None
+                        remesher.adopt(cur, traj.info["remesh_spacing"], name)
+                        sub["from_bridge"] = True
+                    elif remesher is not None and (i > 1 or j > 1):
+                        before = (state, None, subs[-1]["S"] if subs else last["S"],
+                                  "the remesh between sub-stages" if subs else "the remesh between stages")
+                        cur, report = remesher(positions=wp.array(state.local_vertices, dtype=wp.vec3,
+                                                                  device=device))
+                        sub["remesh"] = report.to_dict()
+                    else:
+                        cur = state
+                    state, _ = _run_stage(cur, i, taus, S_init, p, device, bar, sub, remesher,
+                                          goal=((i - 1) * m + j) / (p.stages * m),
+                                          previous=subs[-1] if subs else last)
+                    before = sub.pop("before_remesh", before)
+                    subs.append(sub)
+                    if j < m:
+                        state = _as_saved(state, origin)
+                        if remesher is not None and sub.pop("kept", False):
+                            remesher.adopt(state, traj.info["remesh_spacing"], name)
+                rec = _merge_substages(subs)
+                if (adaptive and remesher is not None and p.bridge and i < p.stages
+                        and rec["S"] < S_init * (1.0 - i / p.stages - p.tolerance)
+                        and before[2] >= S_init * (1.0 - i / p.stages - p.tolerance)):
+                    q = _as_saved(state, origin)
+                    bridged, why = _bridge(remesher, before, q, rec, i, taus, S_init, p, device)
+                    if not bridged and before[3] == "the remesh between stages" and i >= 2:
+                        # the previous state's own level set is the remeshed one (its parts met: a self-intersection
+                        # the remesh joined): from the stage before it instead
+                        earlier = _as_saved(traj.meshes[-2], origin)
+                        bridged, _ = _bridge(remesher, (earlier, None, traj.records[-2]["S"],
+                                                        f"the remesh of stage {i - 1}'s state (from stage {i - 2}'s)"),
+                                             q, rec, i, taus, S_init, p, device)
+                    if bridged:
+                        (state, rec), pending, after_bridge = bridged[0], bridged[1:], q
+                    else:
+                        rec["exception"] = ((rec["exception"] + "; ") if rec.get("exception") else "") + why
+            if adaptive and rec["S"] > last["S"] and _euler(prev) == 2 and "bridge" not in rec:
                 # A stage that ends above the previous one's S did not descend: it keeps the previous state and t
                 # (a shape with a handle is the exception: its S rises while the hole narrows until a remesh
                 # closes it)
@@ -852,7 +914,7 @@ def flow(
                 rec.update(t=last["t"], S=last["S"], status="held", **_facts(prev, device))
                 state = prev
             state = _as_saved(state, origin)
-            if remesher is not None and (rec.pop("kept", False) or rec["status"] == "held"):
+            if remesher is not None and "bridge" not in rec and (rec.pop("kept", False) or rec["status"] == "held"):
                 # the remesher holds the last state it made; this stage recorded another: continue from it, as a
                 # resumed run does
                 remesher.adopt(state, traj.info["remesh_spacing"], name)
@@ -876,6 +938,115 @@ def flow(
         raise FlowError(f"VNC-Flow stage {len(traj.meshes) - 1} produced an invalid surface ({problem}); this is "
                         "a bug, please report it")
     return traj
+
+
+def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: float, p: FlowParams, device
+            ) -> tuple[list[tuple[Mesh, dict]], str | None]:
+    """Fill the stages that a remesh skipped. ``before = (mesh, positions or None, S, which remesh)`` is the state ``P``
+    before the remesh (in or above stage ``i``'s window), ``q`` the stage's state ``Q`` after it (``rec`` its record), below
+    the window. Stages ``i, i + 1, ...`` whose windows lie above ``S_Q`` get states on the path from ``P`` to ``Q``
+    (:class:`vnc_warp.remesh._SurfaceBlend`, the zero level set of ``(1 - a) f_P + a f_Q`` on a grid
+    ``_BRIDGE_REFINE`` times finer than the remesher's), ``a`` searched from the previous bridged stage's toward 1
+    (Illinois steps, at most ``_BRIDGE_TRIALS`` per stage) until ``t`` lands in the stage's window. Where ``t``
+    jumps across a window along the path (a handle closes, a part goes, at some ``a``) the bracket shrinks to
+    ``_BRIDGE_GAP``, and that stage records the first state past the jump (status ``bridge jump``, the genus-change
+    exception); the stages after it are bridged as before.
+
+    Returns:
+        ``([(state, record), ...], None)`` for the bridged stages, in order, or ``([], why)`` when the path lands no
+        stage (its ``t`` jumps at ``a = 0+``: the grid cannot represent ``P``'s features) and the stage keeps ``Q``.
+    """
+    from .remesh import _SurfaceBlend
+
+    t_start = time.perf_counter()
+    mesh_p, x_p, S_p, kind = before
+    origin = q.origin
+    if x_p is None:
+        x_p = wp.array(mesh_p.local_vertices, dtype=wp.vec3, device=device)
+
+    def tri(mesh):
+        return wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+    S_q = rec["S"]
+    tol = p.tolerance * S_init
+    try:
+        blend = _SurfaceBlend(remesher, x_p, tri(mesh_p), wp.array(q.local_vertices, dtype=wp.vec3, device=device),
+                              tri(q), spacing=remesher.spacing / _BRIDGE_REFINE)
+    except MeshError as err:
+        return [], f"no bridge over the remesh ({err})"
+    cache: dict = {}
+
+    def trial(a: float) -> tuple[float, Mesh | None, dict | None]:
+        if a not in cache:
+            try:
+                mesh, report = blend(a)
+            except MeshError as err:
+                log.info("VNC-Flow: the bridge at a = %.4g failed (%s)", a, err)
+                cache[a] = (math.nan, None, None)
+            else:
+                mesh = _as_saved(mesh, origin)
+                cache[a] = (total_complexity(mesh, taus, kappa=p.kappa, device=device), mesh, report.to_dict())
+        return cache[a]
+
+    where = (f"{kind} took t from {S_p / S_init:.4f} to {S_q / S_init:.4f}, below stage {i}'s window; "
+             f"stages {i}..")
+    out, lo, S_lo, j, landed = [], 0.0, S_p, i, 0
+    while j < p.stages and S_q < S_init * (1.0 - j / p.stages) - tol:
+        target = S_init * (1.0 - j / p.stages)
+        hi, S_hi, side, trials, history, found = 1.0, S_q, 0, 0, [[0, S_lo]], None
+        while trials < _BRIDGE_TRIALS and hi - lo > _BRIDGE_GAP:
+            gap = S_lo - S_hi
+            theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 else 0.5 * (lo + hi)
+            a = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
+            S, mesh, report = trial(a)
+            trials += 1
+            history.append([trials, S])
+            if not math.isfinite(S):
+                hi = a  # a failed blend: look nearer the last good state
+                continue
+            if abs(S - target) <= tol:
+                found = (a, S, mesh, report)
+                break
+            # Illinois steps (see _ellipsoid_blend)
+            if S > target:
+                lo, S_lo = a, S
+                if side > 0:
+                    S_hi = target + 0.5 * (S_hi - target)
+                side = 1
+            else:
+                hi, S_hi = a, S
+                if side < 0:
+                    S_lo = target + 0.5 * (S_lo - target)
+                side = -1
+        jump = None
+        if found is None:
+            # t jumps across the window between a = lo and a = hi: the first state past the jump is the exception
+            S_hi, mesh, report = trial(hi) if hi < 1.0 else (S_q, q, None)
+            if mesh is None or hi >= 1.0:
+                break
+            jump = (f"t jumps across this stage's window along the bridge between a = {lo:.4g} (t {S_lo / S_init:.4f}"
+                    f") and a = {hi:.4g} (t {S_hi / S_init:.4f}, Euler characteristic "
+                    f"{report['euler']}): recording the state past the jump")
+            found = (hi, S_hi, mesh, report)
+        a, S, mesh, report = found
+        landed += jump is None
+        r = {"index": i + len(out), "t": S / S_init, "S": S, "target_t": target / S_init, "iterations": 0,
+             "evaluations": trials, "status": "bridge jump" if jump else "bridged",
+             "exception": jump, "history": history, "remeshes_within": [], "remesh": None,
+             "bridge": {"a": a, "trials": trials, "t_from": S_p / S_init, "t_to": S_q / S_init,
+                        "over": kind, "first_stage": i, "remesh": report},
+             "parts": {}, **_facts(mesh, device)}
+        out.append((mesh, r))
+        lo, S_lo, j = a, S, j + 1
+    if not landed:
+        return [], (f"{where} could not be bridged: t jumps at a = 0+ along the level-set path (the bridge's grid "
+                    f"cannot represent the state before the remesh); recording the remeshed state")
+    last = out[-1][1]
+    for _, r in out:
+        r["bridge"]["stages"] = [out[0][1]["index"], last["index"]]
+        r["exception"] = "; ".join(x for x in (r["exception"], where + f"{last['index']} bridged") if x)
+    out[0][1]["seconds_bridge"] = time.perf_counter() - t_start
+    return out, None
 
 
 def _merge_substages(subs: list[dict]) -> dict:
@@ -1068,6 +1239,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             continue
         if descent and (kept is None or S_a < kept[0]):
             kept = (S_a, mesh, wp.clone(x_a))
+        # the bridge (flow()) goes from the best state before the stage's last remesh, should it skip the window
+        rec["before_remesh"] = (mesh, wp.clone(x_a), S_a, "a level-set remesh within the stage")
         try:
             mesh, report = remesher(positions=restart)
         except MeshError as err:

@@ -1651,79 +1651,147 @@ def moment_ellipsoid(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return centroid + mean, axes, radii, volume
 
 
-class _EllipsoidBlend:
-    """The surfaces between a state and its moment ellipsoid (:func:`moment_ellipsoid`): for ``a`` in [0, 1] the
-    zero level set of ``(1 - a) f + a g``, ``f`` the state's signed distance and ``g`` the ellipsoid's, made by the
-    remesher's level-set path (marching cubes, largest component, decimation to the state's face count,
-    regularization, checks) and scaled to the state's volume. ``f`` is sampled once per grid (the remesher's
-    spacing, over the state's and the ellipsoid's bounds), then reused for every ``a``; see
-    :func:`vnc_warp.flow.flow` (the blend fallback) for why. ``roundness`` in [0, 1] moves the ellipsoid's semi-axes
-    toward the radius of the sphere of its volume (geometric interpolation, the volume kept): at 1 the blend goes
-    toward that sphere, for a state whose own ellipsoid is too elongated to lower ``S`` enough (a long-handled
-    club's: on hammer.obj on the H200 at f00c328 no blend toward its ellipsoid lowered t below 0.375)."""
+class _Blend:
+    """The surfaces between a state and a second shape: for ``a`` in [0, 1] the zero level set of
+    ``(1 - a) f + a g``, ``f`` the state's signed distance and ``g`` the other shape's (:meth:`_blend` writes it),
+    made by the remesher's level-set path (marching cubes, largest component, decimation to the state's face count,
+    regularization, checks) and scaled by :meth:`_scale`. ``f`` is sampled once per grid (spacing ``spacing``, the
+    remesher's unless given, over :attr:`lo`, :attr:`hi`), then reused for every ``a``.
 
-    def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array):
+    Subclasses set ``lo``, ``hi`` (bounds of both shapes), ``what`` (the report's words) and ``name`` (the result's
+    name suffix) in their constructor after calling this one's."""
+
+    def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array, *, spacing: float | None = None):
         self.remesher = remesher
-        v = x.numpy().astype(np.float64)
+        self.spacing = float(remesher.spacing if spacing is None else spacing)
+        self.v = x.numpy().astype(np.float64)
         self.f = tri.numpy().reshape(-1, 3).astype(np.int64)
-        self.centre, self.axes, self.radii, self.volume = moment_ellipsoid(v, self.f)
         self.wm = wp.Mesh(points=x, indices=tri, support_winding_number=bool(remesher.use_winding))
-        self.area = float(_area_and_centroid(v, self.f)[0])
-        self.roundness = 0.0
-        half = np.maximum(np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1)), self.radii.max())
-        self.lo, self.hi = np.minimum(v.min(axis=0), self.centre - half), np.maximum(v.max(axis=0), self.centre + half)
-        self.euler = v.shape[0] - self.f.shape[0] // 2
+        self.area = float(_area_and_centroid(self.v, self.f)[0])
+        self.euler = self.v.shape[0] - self.f.shape[0] // 2
+        self.lo, self.hi = self.v.min(axis=0), self.v.max(axis=0)
         self.grids: dict = {}
+
+    def _sample(self, wm: wp.Mesh, area: float, h: float, shift, clock: _Clock) -> tuple[wp.array, np.ndarray]:
+        origin = self.lo - (2.0 - np.asarray(shift)) * h
+        shape = tuple(int(n) for n in np.ceil((self.hi - origin) / h).astype(int) + 3)
+        grid = sample_grid(wm, origin, h, shape, band_factor=choose_band_factor(shape, area, h),
+                           use_winding=self.remesher.use_winding, device=self.remesher.device)
+        clock.lap("sdf")
+        return grid, origin
 
     def _distance(self, h: float, shift, clock: _Clock) -> tuple[wp.array, np.ndarray]:
         key = (float(h), tuple(shift))
         if key not in self.grids:
-            origin = self.lo - (2.0 - np.asarray(shift)) * h
-            shape = tuple(int(n) for n in np.ceil((self.hi - origin) / h).astype(int) + 3)
-            grid = sample_grid(self.wm, origin, h, shape, band_factor=choose_band_factor(shape, self.area, h),
-                               use_winding=self.remesher.use_winding, device=self.remesher.device)
-            self.grids[key] = (grid, origin)
-            clock.lap("sdf")
+            self.grids[key] = self._sample(self.wm, self.area, h, shift, clock)
         return self.grids[key]
+
+    def _blend(self, grid: wp.array, origin: np.ndarray, h: float, shift, a: float, out: wp.array,
+               clock: _Clock) -> None:
+        raise NotImplementedError
+
+    def _scale(self, st: _HalfEdgeSurface, a: float) -> None:
+        raise NotImplementedError
 
     def __call__(self, a: float) -> tuple[Mesh, RemeshReport]:
         """The blended surface at ``a`` (in the remesher's frame) and its report (``method`` ``"blend"``)."""
         r = self.remesher
+
         seconds: dict = {}
         clock = _Clock(r.device, seconds)
-        m = wp.mat33(*self.axes.reshape(-1).tolist())
-        sphere = float(np.prod(self.radii)) ** (1.0 / 3.0)
-        radii = self.radii ** (1.0 - self.roundness) * sphere ** self.roundness
 
         def sample(h: float, shift) -> _LevelSet:
             grid, origin = self._distance(h, shift, clock)
             out = wp.empty_like(grid)
-            wp.launch(_k.blend_ellipsoid_grid, dim=grid.shape,
-                      inputs=[grid, wp.vec3(*origin), float(h), wp.vec3(*self.centre), m, wp.vec3(*radii),
-                              float(a), _MIN_ABS_SDF * h], outputs=[out], device=r.device)
+            self._blend(grid, origin, h, shift, a, out, clock)
             clock.lap("sdf")
             ls = _extract(out, origin, h, r.method, False)
             clock.lap("marching_cubes")
             return ls
 
         target = self.f.shape[0]
-        report = RemeshReport("blend", r.spacing, target, euler_in=self.euler, seconds=seconds)
-        report.why_level_set = f"blend toward the moment ellipsoid (roundness {self.roundness:g}) at a = {a:.4g}"
-        st, _ = r._level_set_path(self.wm, self.lo, self.hi, r.spacing, sample(r.spacing, _GRIDS[0][0]), self.area,
-                                  target, report, clock, euler=self.euler, sample=sample)
+        report = RemeshReport("blend", self.spacing, target, euler_in=self.euler, seconds=seconds)
+        report.why_level_set = f"{self.what} at a = {a:.4g}"
+        st, _ = r._level_set_path(self.wm, self.lo, self.hi, self.spacing, sample(self.spacing, _GRIDS[0][0]),
+                                  self.area, target, report, clock, euler=self.euler, sample=sample)
         if r.relax_iterations:
             area, _, _, _, _ = st.measures()
             r._own_fixed_point(st, area)
-        # the trajectory's S is measured at fixed scales: a smaller shape would count as a smoother one
-        _, volume, centre, _, _ = st.measures()
-        st.scale_about(centre, (self.volume / volume) ** (1.0 / 3.0))
+        self._scale(st, a)
         st, problems, report.slivers_repaired = st.checked(1e-12 * float(((self.hi - self.lo) ** 2).sum()))
         if problems:
             raise MeshError(f"sdf_remesh: {r.name}: the blend at a = {a:.4g} left " + "; ".join(problems))
-        out = st.to_mesh(f"{r.name}:blended", r.origin)
+        out = st.to_mesh(f"{r.name}:{self.name}", r.origin)
         clock.lap("regularize")
         report.faces, report.vertices, report.euler = out.num_faces, out.num_vertices, st.euler
         return out, report
+
+
+class _EllipsoidBlend(_Blend):
+    """:class:`_Blend` toward the state's moment ellipsoid (:func:`moment_ellipsoid`), scaled to the state's volume;
+    see :func:`vnc_warp.flow.flow` (the blend fallback) for why. ``roundness`` in [0, 1] moves the ellipsoid's
+    semi-axes toward the radius of the sphere of its volume (geometric interpolation, the volume kept): at 1 the
+    blend goes toward that sphere, for a state whose own ellipsoid is too elongated to lower ``S`` enough (a
+    long-handled club's: on hammer.obj on the H200 at f00c328 no blend toward its ellipsoid lowered t below 0.375)."""
+
+    name = "blended"
+
+    def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array):
+        super().__init__(remesher, x, tri)
+        self.centre, self.axes, self.radii, self.volume = moment_ellipsoid(self.v, self.f)
+        self.roundness = 0.0
+        half = np.maximum(np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1)), self.radii.max())
+        self.lo, self.hi = np.minimum(self.lo, self.centre - half), np.maximum(self.hi, self.centre + half)
+
+    @property
+    def what(self) -> str:
+        return f"blend toward the moment ellipsoid (roundness {self.roundness:g})"
+
+    def _blend(self, grid, origin, h, shift, a, out, clock) -> None:
+        sphere = float(np.prod(self.radii)) ** (1.0 / 3.0)
+        radii = self.radii ** (1.0 - self.roundness) * sphere ** self.roundness
+        wp.launch(_k.blend_ellipsoid_grid, dim=grid.shape,
+                  inputs=[grid, wp.vec3(*origin), float(h), wp.vec3(*self.centre),
+                          wp.mat33(*self.axes.reshape(-1).tolist()), wp.vec3(*radii), float(a), _MIN_ABS_SDF * h],
+                  outputs=[out], device=self.remesher.device)
+
+    def _scale(self, st: _HalfEdgeSurface, a: float) -> None:
+        # the trajectory's S is measured at fixed scales: a smaller shape would count as a smoother one
+        _, volume, centre, _, _ = st.measures()
+        st.scale_about(centre, (self.volume / volume) ** (1.0 / 3.0))
+
+
+class _SurfaceBlend(_Blend):
+    """:class:`_Blend` from a state ``P`` toward another surface ``Q`` (``x_q``, ``tri_q``, in the same frame), both
+    signed distances sampled on one grid: the continuous path between two states that one remesh joins (a level-set
+    remesh that closes handles or cuts thin parts off in one step; see :func:`vnc_warp.flow.flow`, the bridge). The
+    result is scaled to the area ``(1 - a) A_P + a A_Q``, as a remesh keeps the area. A grid finer than the remesher's
+    (``spacing``) represents the features of ``P`` that the remesher's level set lost, so that they go along the
+    path instead of at ``a = 0``."""
+
+    name = "bridged"
+    what = "bridge from the state before the remesh toward the state after it"
+
+    def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array, x_q: wp.array, tri_q: wp.array, *,
+                 spacing: float):
+        super().__init__(remesher, x, tri, spacing=spacing)
+        v_q = x_q.numpy().astype(np.float64)
+        f_q = tri_q.numpy().reshape(-1, 3).astype(np.int64)
+        self.wm_q = wp.Mesh(points=x_q, indices=tri_q, support_winding_number=bool(remesher.use_winding))
+        self.area_q = float(_area_and_centroid(v_q, f_q)[0])
+        self.lo, self.hi = np.minimum(self.lo, v_q.min(axis=0)), np.maximum(self.hi, v_q.max(axis=0))
+        self.grids_q: dict = {}
+
+    def _blend(self, grid, origin, h, shift, a, out, clock) -> None:
+        key = (float(h), tuple(shift))
+        if key not in self.grids_q:
+            self.grids_q[key] = self._sample(self.wm_q, self.area_q, h, shift, clock)
+        wp.launch(_k.blend_grids, dim=grid.shape, inputs=[grid, self.grids_q[key][0], float(a), _MIN_ABS_SDF * h],
+                  outputs=[out], device=self.remesher.device)
+
+    def _scale(self, st: _HalfEdgeSurface, a: float) -> None:
+        area, _, centre, _, _ = st.measures()
+        st.scale_about(centre, np.sqrt(((1.0 - a) * self.area + a * self.area_q) / area))
 
 
 def sdf_remesh(mesh: Any, *, faces: int | None = None, resolution: int | None = None, device=None,
