@@ -777,6 +777,42 @@ def test_the_smoothing_fallback_starts_where_the_previous_stage_s_ended():
     state = smoother.current()
     assert abs(total_complexity(state, taus, device="cpu") - 0.9 * S) <= 0.005 * S
     assert not surface_problems(state.vertices, state.faces)
+def test_a_bridge_that_jumps_at_once_takes_one_blend_per_stage_until_it_lands():
+    """P is a sphere with radial noise finer than the bridge's grid, Q the sphere the remesh made of it (t 1 -> 0.02,
+    N = 4): on the level-set path from P to Q, t has already jumped below stage 1's window at the path's first state.
+    Stage 1 records that state as its jump after one blend (the code of 36d1669 searched toward a = 0: 4 blends, and
+    2 more for stage 2's near-copy; FAUST 025 on the H200 took 15-39 s per bridged stage so), stage 2, whose window the
+    path has passed, its next state after one more, and stage 3 lands in its window (oracle: 1 - i/N and the
+    tolerance). Every state is a valid closed surface, each a different mesh."""
+    from vnc_warp.flow import FlowParams, _as_saved, _bridge, _mesh_digest
+    from vnc_warp.remesh import _Remesher
+    from vnc_warp.scale import default_scales
+
+    ico = trimesh.creation.icosphere(3)
+    noisy = ico.vertices * (1.0 + 0.04 * np.random.default_rng(0).standard_normal(len(ico.vertices)))[:, None]
+    remesher = _Remesher(faces=1280, device="cpu", warn=False)
+    q, _ = remesher(ico)
+    remesher.spacing = 0.3  # a coarse grid, as on a state whose parts met
+    mp = _as_saved(vw.load_mesh((noisy, ico.faces)), remesher.origin)
+    q = _as_saved(q, remesher.origin)
+    taus = default_scales(mp, 16)
+    S_p, S_q = total_complexity(mp, taus, device="cpu"), total_complexity(q, taus, device="cpu")
+    assert S_q < 0.05 * S_p
+    p = FlowParams(stages=4)
+    out, why = _bridge(remesher, (mp, None, S_p, "a test remesh"), q, {"S": S_q}, 1, taus, S_p, p, "cpu")
+    assert why is None
+    assert [(rec["index"], rec["status"], rec["evaluations"]) for _, rec in out][:2] == [
+        (1, "bridge jump", 1), (2, "bridge jump", 1)]
+    assert out[0][1]["t"] < 0.75 - p.tolerance and out[1][1]["t"] < 0.5 - p.tolerance
+    index, status = out[2][1]["index"], out[2][1]["status"]
+    assert (index, status) == (3, "bridged") and abs(out[2][1]["t"] - 0.25) <= p.tolerance
+    digests = {_mesh_digest(mp), _mesh_digest(q)}
+    for m, rec in out:
+        assert not surface_problems(m.vertices, m.faces), rec["index"]
+        digests.add(_mesh_digest(m))
+    assert len(digests) == 5
+
+
 def test_the_bridge_fills_the_stages_a_remesh_skips():
     """A remesh that takes t from a bumpy shape P (t = 1) to a state Q far below the next windows (here Q is the
     sphere of P's area, t 0.04, as a level-set remesh that closes handles or joins parts jumps in one step): the

@@ -709,3 +709,27 @@ def test_a_sheet_thinner_than_the_grid_keeps_its_surface(spot):
     change = _total_s(m1, taus, "cpu") / _total_s(m0, taus, "cpu") - 1.0
     assert abs(change) < 0.005, change
     validate_surface(m1)
+
+
+def test_a_bridge_grid_gives_marching_cubes_at_most_sixteen_times_the_faces():
+    """The bridge's finer grid (vnc_warp.flow._bridge) is made no finer than marching cubes' 16x the face count:
+    asked for a third of the remesher's spacing (~36x), the blend's level set, counted on marching cubes' own output,
+    holds about 16x the faces (the cap's estimate of 2.83 triangles per area / h^2 gives 3.0 on this sphere: 17.0x;
+    10 % over is allowed). Without the cap, FAUST
+    025's bridge (its spacing already halved for thin parts) decimated ~64x at every blend."""
+    from vnc_warp.remesh import _GRIDS, _Clock, _SurfaceBlend, _extract
+
+    sphere = trimesh.creation.icosphere(3)
+    remesher = _Remesher(faces=1280, device="cpu")
+    q, _ = remesher(sphere)
+
+    def arrays(v, f):
+        return (wp.array(np.asarray(v, np.float32) - remesher.origin, dtype=wp.vec3, device="cpu"),
+                wp.array(np.asarray(f, np.int32).reshape(-1), dtype=wp.int32, device="cpu"))
+
+    blend = _SurfaceBlend(remesher, *arrays(sphere.vertices, sphere.faces), *arrays(q.vertices, q.faces),
+                          spacing=remesher.spacing / 3.0)
+    assert blend.spacing > remesher.spacing / 3.0
+    grid, origin = blend._distance(blend.spacing, _GRIDS[0][0], _Clock(remesher.device, {}))
+    _, faces = _extract(grid, origin, blend.spacing, remesher.method, False).host()
+    assert 10.0 * 1280 <= faces.shape[0] <= 1.1 * 16.0 * 1280, faces.shape[0]

@@ -71,6 +71,11 @@ __all__ = ["sdf_remesh", "validate_surface", "RemeshReport", "RemeshWarning"]
 _MC_FACES_PER_AREA = 2.83
 # Marching cubes aims at this many times the target face count before decimation.
 _OVERSAMPLE = 4.0
+# ... and a blend's finer grid (_SurfaceBlend) gives it at most this many times: the bridge's grid, twice as fine as
+# a remesher's whose spacing the thin parts had already halved (16x), gave 64x (FAUST 025 at 13,772 faces: spacing
+# 0.00504, ~880k marching-cubes faces to label and decimate at every trial of a; bridged stages took 15-39 s on an H200
+# at 36d1669, human_man's 5-7 s)
+_MAX_BLEND_OVERSAMPLE = 16.0
 # Grid cells across the thinnest parts kept by the automatic resolution ...
 _CELLS_ACROSS_THIN = 2.0
 # ... where "thinnest" is this area-weighted percentile of the inward thickness.
@@ -1767,7 +1772,8 @@ class _SurfaceBlend(_Blend):
     remesh that closes handles or cuts thin parts off in one step; see :func:`vnc_warp.flow.flow`, the bridge). The
     result is scaled to the area ``(1 - a) A_P + a A_Q``, as a remesh keeps the area. A grid finer than the remesher's
     (``spacing``) represents the features of ``P`` that the remesher's level set lost, so that they go along the
-    path instead of at ``a = 0``."""
+    path instead of at ``a = 0``; it is made no finer than marching cubes' ``_MAX_BLEND_OVERSAMPLE`` times the face
+    count (nor than the grid's node cap)."""
 
     name = "bridged"
     what = "bridge from the state before the remesh toward the state after it"
@@ -1780,6 +1786,9 @@ class _SurfaceBlend(_Blend):
         self.wm_q = wp.Mesh(points=x_q, indices=tri_q, support_winding_number=bool(remesher.use_winding))
         self.area_q = float(_area_and_centroid(v_q, f_q)[0])
         self.lo, self.hi = np.minimum(self.lo, v_q.min(axis=0)), np.maximum(self.hi, v_q.max(axis=0))
+        # no finer than marching cubes' _MAX_BLEND_OVERSAMPLE times the face count, nor past the grid's node cap
+        coarsest = np.sqrt(_MC_FACES_PER_AREA * max(self.area, self.area_q) / (_MAX_BLEND_OVERSAMPLE * self.f.shape[0]))
+        self.spacing = max(self.spacing, float(coarsest), finest_spacing(self.hi - self.lo))
         self.grids_q: dict = {}
 
     def _blend(self, grid, origin, h, shift, a, out, clock) -> None:
