@@ -9,15 +9,16 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   inward or outward), added in a fixed order (:func:`reference_mean`) so that a run repeats bit for bit.
 * **Step size rule**: at the first iteration of each stage ``lambda = eta * mean_edge_length / q90(|H - H_ref|)``
   (the 90th-percentile vertex moves ``eta`` mean edge lengths), capped at ``max_lambda`` mean edge lengths for
-  stability, then held for the stage so moves shrink as the surface converges, except that it doubles
-  (``step_growth``) after each run of steps that lowered ``S``, up to the uncapped rule, until the stage first
-  backtracks; every move is clamped to ``eta`` times the vertex's own mean incident edge length. The rule is
+  stability, then held for the stage so moves shrink as the surface converges (``step_growth`` > 1 multiplies it
+  after each run of steps that lowered ``S``, up to the uncapped rule, until the stage first backtracks; off by
+  default); every move is clamped to ``eta`` times the vertex's own mean incident edge length. The rule is
   unit-free. **Why late stages stalled**: near a sphere ``q90`` is ~0.003, so the rule asks for 80-120 edge lengths
   and ``lambda`` sits at the cap; VNC-soft's ``H`` is proportional to the edge length, so a step moved the median
   vertex by ~0.008 of an edge (none at the clamp; nefertiti stage 30 at 6,000 and 24,000 faces, CPU), and the
   iterations a stage needs grow with the face count: 47 at stage 31 at 6,000 faces, the full ``max_iters`` = 300
   and the fallbacks at 50,000 (H200, 25fa345). Four times the cap lowered ``S`` 2.8 times as fast per step at
-  24,000 faces but climbed at 6,000, so the step is grown where it holds rather than the cap raised. A stage that
+  24,000 faces but climbed at 6,000; growing the step where it holds (``step_growth``) cost more level-set remeshes
+  within stages at full size than it saved (see :class:`FlowParams`), so neither is on by default. A stage that
   clearly cannot reach its window in the iterations left (twice over, at the rate of its last ``2 eval_max``
   iterations) goes to the fallbacks at once (``early_fallback``; said in its ``exception``). **Descent**: a run of steps
   that takes ``S`` more than ``_RISE`` (5 %) above its segment's start is not a descent step of Eq. (5): the
@@ -250,10 +251,14 @@ class FlowParams:
             up to the step size rule's own value ``eta / q90`` (no ``max_lambda`` cap; not in the last stage), until
             the stage first backtracks (a run of steps that raised ``S`` is taken back at half the step, see the module
             docstring);
-            1 keeps ``lambda`` fixed for the stage. Late stages need it: near a sphere ``q90`` is small, ``lambda``
-            sits at the cap, and since VNC-soft's ``H`` scales with the edge length, each step moves a vertex by
-            ``max_lambda`` edge lengths times ``H``, about one hundredth of an edge; at 50k faces the stages took the
-            full ``max_iters`` (issue 21, H200 at 25fa345).
+            1 (the default) keeps ``lambda`` fixed for the stage. Meant for late stages: near a sphere ``q90`` is
+            small, ``lambda`` sits at the cap, and since VNC-soft's ``H`` scales with the edge length, each step moves
+            a vertex by ``max_lambda`` edge lengths times ``H``, about one hundredth of an edge; at 50k faces the
+            stages took the full ``max_iters`` (issue 21, H200 at 25fa345). Off by default: on an H200 at 0f6a070
+            (bridge on), growth 2 against 1 gave max |t_i - (1 - i/N)| 0.027 against 0.009 on FAUST 025 and 0.005 on
+            human_man either way (the meshes tuned on), and on the held-out hammer, koala and nefertiti 0.046 / 0.042
+            / 0.005 against 0.005 / 0.005 / 0.013, with more level-set remeshes within stages (hammer 17 against
+            10), in 32.0 / 29.0 / 18.2 s against 26.6 / 19.0 / 16.1 s.
         phi_fraction: Eq. (6) budget as a fraction of the stage's mean per-vertex VNC-AUC.
         tube_rho: where the shape factor ``rho`` (thickness along the inward normal times the mean curvature
             at the largest scale: 1 on a tube, 2 on a ball) is at most this, the part-scale excess of curvature
@@ -306,7 +311,7 @@ class FlowParams:
     kappa: float = 6.0
     step_fraction: float = 0.25
     max_lambda: float = 6.0
-    step_growth: float = 2.0
+    step_growth: float = 1.0
     early_fallback: bool = True
     phi_fraction: float = 0.5
     tube_rho: float = 1.2
@@ -1063,9 +1068,9 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
         out.append((mesh, r))
         lo, S_lo, j = a, S, j + 1
     if not landed:
-        return [], (f"{where} could not be bridged: t jumps at a = 0+ along the level-set path (the bridge's grid "
-                    f"cannot represent the state before the remesh; {len(cache)} blend(s)); recording the remeshed "
-                    f"state")
+        return [], (f"{where} could not be bridged: no stage landed in its window along the level-set path "
+                    f"({len(cache)} blend(s); t jumps at a = 0+ where the bridge's grid cannot represent the state "
+                    f"before the remesh); recording the remeshed state")
     last = out[-1][1]
     for _, r in out:
         r["bridge"]["stages"] = [out[0][1]["index"], last["index"]]
