@@ -365,6 +365,23 @@ def test_relative_thickness_of_sphere_and_cylinder():
     assert relative_thickness(vw.load_mesh(cyl), device="cpu") == pytest.approx(expected, rel=0.02)
 
 
+def test_thinnest_part_sees_a_stalk_the_5th_percentile_does_not():
+    """Two balls 0.35 in radius on a stalk 0.06 thick (capsules, marching cubes): the stalk carries about 2 % of the
+    area, so the area-weighted 5th-percentile thickness reads the balls (above 1), while the thinnest part (the
+    smallest 1-ring median of the thickness along inward vertex normals) reads the stalk: its diameter over the radius
+    of the sphere of equal area. A sphere reads 2 in both."""
+    from capsules import capsules
+    from vnc_warp.flow import relative_thickness, thinnest_part
+
+    sphere = vw.load_mesh(trimesh.creation.icosphere(5, radius=3.0))
+    assert thinnest_part(sphere, device="cpu") == pytest.approx(2.0, rel=0.01)
+    stalk = vw.load_mesh(capsules([((-0.6, 0.0, 0.0), (-0.6, 0.0, 0.0), 0.35), ((0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.35),
+                                   ((-0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.03)], nodes=96, blend=0.01))
+    radius = np.sqrt(stalk.area() / (4 * np.pi))
+    assert relative_thickness(stalk, device="cpu") > 1.0
+    assert thinnest_part(stalk, device="cpu") == pytest.approx(0.06 / radius, rel=0.25)
+
+
 def test_flow_repairs_what_the_first_remesh_can_and_records_it(caplog):
     """A mesh with a non-manifold edge (a fin face), a duplicated face and two overlapping components, which
     load_mesh refuses, flows: the first remesh repairs it, says so on the ``vnc_warp`` logger, and the trajectory
