@@ -10,7 +10,9 @@ For every mesh (``--all``: every closed mesh in the folder; ``--names``: those) 
   are not a documented exception (the last stage; a stage whose remesh changed the topology), and which stages
   hold the previous stage's state (its very vertices, or no step of Eq. (5) taken: its re-tessellation);
 * **thinning**: the smallest stage-to-stage ratio of the 5th-percentile relative thickness (4096 area-weighted
-  rays along inward normals, over the radius of the sphere of equal area);
+  rays along inward normals, over the radius of the sphere of equal area), and of the thinnest part's
+  (``vnc_warp.flow.thinnest_part``: the smallest 1-ring median of the thickness along inward vertex normals, over
+  the same radius), which sees a stalk or a thread that carries too little area for the 5th percentile;
 * **remesh alone**: the change of the total VNC-AUC ``S`` (16 scales of stage 0) when stage 0 is remeshed once
   more with the trajectory's remesher and nothing else happens;
 * **seconds**: wall seconds of the whole flow (stage 0's remesh included; kernel compilation and the device's
@@ -105,6 +107,7 @@ def summarize(traj, n: int) -> dict:
     dev = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:]]
     ruled = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:] if _exception(r, n) is None]
     ratios = [r["thickness_ratio"] for r in recs[1:] if r.get("thickness_ratio")]
+    thinnest = [r["thinnest_ratio"] for r in recs[1:] if r.get("thinnest_ratio")]
     # a stage holds the previous stage's state when its vertices are that state's, or when it took no step of
     # Eq. (5): then it is that state re-tessellated by the remesh between stages, new vertices, the same shape
     same = [i for i, (m, prev, r) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1], recs[1:]), start=1)
@@ -113,6 +116,7 @@ def summarize(traj, n: int) -> dict:
     return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
             "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
             "min_thickness_ratio": min(ratios, default=None), "thickness": [r["thickness"] for r in recs],
+            "min_thinnest_ratio": min(thinnest, default=None), "thinnest": [r.get("thinnest") for r in recs],
             "same_mesh_stages": same, "final_t": float(traj.t[-1]),
             "statuses": {s: sum(r["status"] == s for r in recs[1:]) for s in {r["status"] for r in recs[1:]}}}
 
@@ -215,7 +219,7 @@ def _run(path, variant, params, args):
                     max_iters=args.max_iters, out_dir=out_dir, **(params | _overrides(args.set)))
     seconds = time.perf_counter() - t0
     keep = ("index", "t", "target_t", "iterations", "evaluations", "seconds", "sphericity", "thickness",
-            "thickness_ratio", "euler", "status", "exception", "vertices", "faces")
+            "thickness_ratio", "thinnest", "thinnest_ratio", "euler", "status", "exception", "vertices", "faces")
     S_init = traj.info["S_init"]
     stages = [{k: r.get(k) for k in keep} | {"remesh": (r.get("remesh") or {}).get("method")} | _moves(r, S_init)
               for r in traj.records]
@@ -254,12 +258,12 @@ def _fmt(x, spec=".3f"):
 def summary_table(runs: list, title: str) -> list[str]:
     lines = [f"#### {title}", "",
              "| mesh | faces | max \\|t_i - (1 - i/N)\\| (exceptions out) | all stages | exceptions | smallest "
-             "thickness ratio | S change, one remesh | seconds | remesh s | stage s | final t | stages holding the previous "
-             "state |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "thickness ratio | smallest thinnest-part ratio | S change, one remesh | seconds | remesh s | stage s | "
+             "final t | stages holding the previous state |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         if "error" in r:
-            lines.append(f"| {r['mesh']} | | error: {r['error']} | | | | | | | | | |")
+            lines.append(f"| {r['mesh']} | | error: {r['error']} | | | | | | | | | | |")
             continue
         p = r["parts"]
         rem = sum(v for k, v in p.items() if k.startswith("remesh."))
@@ -267,7 +271,8 @@ def summary_table(runs: list, title: str) -> list[str]:
         exc = ", ".join(f"{i}: {e}" for i, e in r["exceptions"].items())
         ra = r.get("remesh_alone") or {}
         lines.append(f"| {r['mesh']} | {r['faces']:,} | {_fmt(r['max_dt_ruled'])} | {_fmt(r['max_dt'])} | {exc} | "
-                     f"{_fmt(r['min_thickness_ratio'])} | {_fmt(100 * ra['dS'], '+.2f') + ' %' if ra else ''} | "
+                     f"{_fmt(r['min_thickness_ratio'])} | {_fmt(r.get('min_thinnest_ratio'))} | "
+                     f"{_fmt(100 * ra['dS'], '+.2f') + ' %' if ra else ''} | "
                      f"{r['seconds']:.1f} | {rem:.1f} | {stg:.1f} | {r['final_t']:.3f} | "
                      f"{', '.join(map(str, r['same_mesh_stages']))} |")
     return lines
@@ -289,14 +294,15 @@ def stage_table(run: dict, n: int) -> str:
     lines = [f"### {run['mesh']} — {run['variant']} ({run['seconds']:.1f} s, sphericity "
              f"{run['input_sphericity']:.3f} -> {run['final_sphericity']:.3f})", "",
              "| stage | t | ideal 1-i/N | t after remesh | remeshes within | iterations | evaluations | seconds | "
-             "sphericity | thickness | ratio | Euler | remesh | status |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "sphericity | thickness | ratio | thinnest part | ratio | Euler | remesh | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in run["stages"]:
         within = ", ".join(f"{m} {a}->{b}" for m, a, b in r.get("within") or [])
         lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {_fmt(r.get('t_start'))} | {within} | "
                      f"{r['iterations']} | "
                      f"{r.get('evaluations') or ''} | {r['seconds']:.2f} | {r['sphericity']:.3f} | "
-                     f"{_fmt(r.get('thickness'))} | {_fmt(r.get('thickness_ratio'))} | {r.get('euler', '')} | "
+                     f"{_fmt(r.get('thickness'))} | {_fmt(r.get('thickness_ratio'))} | {_fmt(r.get('thinnest'))} | "
+                     f"{_fmt(r.get('thinnest_ratio'))} | {r.get('euler', '')} | "
                      f"{r.get('remesh') or ''} | {r['status']} |")
     return "\n".join(lines)
 
@@ -366,7 +372,8 @@ def main(argv=None) -> int:
         extra = ""
         if variant == "vnc_adaptive":
             extra = (f"  max|dt| {run['max_dt_ruled']:.3f} (all {run['max_dt']:.3f})  thickness ratio "
-                     f"{_fmt(run['min_thickness_ratio'])}  remesh alone "
+                     f"{_fmt(run['min_thickness_ratio'])}  thinnest-part ratio {_fmt(run['min_thinnest_ratio'])}  "
+                     f"remesh alone "
                      f"{100 * run['remesh_alone']['dS']:+.2f} %" if "remesh_alone" in run else "")
         print(f"{name:24s} {variant:14s} {run['seconds']:7.1f} s  t_final {run['final_t']:.3f}{extra}", flush=True)
         with open(os.path.join(args.out, "flow_report.json"), "w") as fh:

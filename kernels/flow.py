@@ -60,6 +60,18 @@ def flow_step(
     x_out[k] = x_in[k] - eq5_move(H[k], H_ref[0], lam, max_move[k]) * n[k]
 
 
+@wp.func
+def part_excess(H: float, part: wp.vec4, neck: float) -> float:
+    """The thin-part correction of a vertex with curvature ``H`` at its own scale and ``part = (w, h, tube, m)`` from
+    :func:`thin_part_correction`: ``w max(H_part - m, 0)``, with the part-scale curvature ``H_part`` the curvature at
+    tau_max ``h``, or, at a neck (``h < H <= h / neck``), ``H`` up to ``tube``."""
+    h = part[1]
+    hp = h
+    if H > h and H * neck <= h:
+        hp = wp.max(h, wp.min(H, part[2]))
+    return part[0] * wp.max(hp - part[3], 0.0)
+
+
 @wp.kernel(enable_backward=False)
 def balanced_step(
     x_in: wp.array(dtype=wp.vec3),
@@ -68,14 +80,21 @@ def balanced_step(
     H_ref: wp.array(dtype=float),
     lam: float,
     max_move: wp.array(dtype=float),
-    part: wp.array(dtype=float),
+    part: wp.array(dtype=wp.vec4),
+    neck: float,
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Eq. (5) as :func:`flow_step`, with the thin-part correction ``part[k]`` taken off the deviation:
-    ``v_k <- v_k - clamp(lambda (H(v_k, tau_k) - H_ref - part_k)) n(v_k, tau_k)`` (see
-    :func:`thin_part_correction`)."""
+    """Eq. (5) as :func:`flow_step`, with the thin-part correction taken off the deviation:
+    ``v_k <- v_k - clamp(lambda d_k) n(v_k, tau_k)``. ``d_k = H(v_k, tau_k) - H_ref - w max(h - m, 0)`` with
+    :func:`thin_part_correction`'s ``(w, h, tube, m)`` (the part-scale excess turned around on tube-like parts), except
+    at a neck (see :func:`part_excess`), where the excess of the neck's own curvature takes off at most the inward
+    part of that deviation: ``d_k = max(H(v_k, tau_k) - H_ref - part_excess, min(d_k, 0))``, so a neck stops thinning
+    but is never pushed outward by more than the rule before."""
     k = wp.tid()
-    x_out[k] = x_in[k] - eq5_move(H[k] - part[k], H_ref[0], lam, max_move[k]) * n[k]
+    c = part[k]
+    d = H[k] - H_ref[0] - c[0] * wp.max(c[1] - c[3], 0.0)
+    d = wp.max(H[k] - H_ref[0] - part_excess(H[k], c, neck), wp.min(d, 0.0))
+    x_out[k] = x_in[k] - eq5_move(d, 0.0, lam, max_move[k]) * n[k]
 
 
 @wp.kernel(enable_backward=False)
@@ -87,22 +106,31 @@ def thin_part_correction(
     edge: float,
     tube: float,
     ball: float,
-    out: wp.array(dtype=float),
+    out: wp.array(dtype=wp.vec4),
 ):
-    """Per vertex: ``(1 - c_k) max(H(v_k, tau_max) - mean(tau_max), 0)``, the part-scale excess curvature turned
-    around where the part is tube-like. ``c_k`` goes from -1 at shape factor ``rho <= tube`` to 1 at ``rho >= ball``,
-    with ``rho = thickness * 2 sqrt(3) H(v_k, tau_max) / edge``: the thickness along the inward normal times the
-    mean curvature (VNC-soft's dimensionless H is ``edge / (2 sqrt(3))`` times it on a regular tessellation), 1 on a
-    tube, 2 on a ball, more at a tip. ``H_large[row]`` is the scale curve at tau_max; a vertex whose inward ray
-    found no surface (``thickness < 0``) keeps Eq. (5)."""
+    """Per vertex ``(w, h, tube, m)`` of :func:`part_excess`: the part-scale excess of curvature, turned around where
+    the part is tube-like.
+
+    ``w = 1 - c_k``, ``c_k`` going from -1 at shape factor ``rho <= tube`` to 1 at ``rho >= ball``, with ``rho =
+    thickness * 2 sqrt(3) H(v_k, tau_max) / edge``: the thickness along the inward normal times the mean curvature
+    (VNC-soft's dimensionless H is ``edge / (2 sqrt(3))`` times it on a regular tessellation), 1 on a tube, 2 on a
+    ball, more at a tip. ``h = H(v_k, tau_max)``, ``m`` its mean over the vertices, and ``tube = edge / (2 sqrt(3)
+    thickness) = h / rho``, the curvature of a tube as thick as the part is at ``v_k``. The excess is ``w max(h - m,
+    0)`` (the rule before necks) except where the part is thinner than its curvature at tau_max says (``rho < 1``,
+    ``tube > h``: a neck between a limb and the body, whose tau_max also sees the body): there the vertex's
+    curvature at its own scale counts as part-scale, up to ``tube``, so that the neck fattens with the limb instead
+    of thinning into a stalk (see :func:`part_excess`). ``H_large[row]`` is the scale curve at tau_max; a vertex
+    whose inward ray found no surface (``thickness < 0``) keeps Eq. (5) (``w = 0``)."""
     k = wp.tid()
     t = thickness[k]
     h = H_large[row, k]
-    c = float(1.0)
+    w = float(0.0)
+    tb = h
     if t > 0.0:
         rho = t * 3.4641016 * h / edge
-        c = wp.clamp(2.0 * (rho - tube) / wp.max(ball - tube, 1.0e-6) - 1.0, -1.0, 1.0)
-    out[k] = (1.0 - c) * wp.max(h - mean_large[row], 0.0)
+        w = 1.0 - wp.clamp(2.0 * (rho - tube) / wp.max(ball - tube, 1.0e-6) - 1.0, -1.0, 1.0)
+        tb = edge / (3.4641016 * t)
+    out[k] = wp.vec4(w, h, tb, mean_large[row])
 
 
 @wp.kernel(enable_backward=False)

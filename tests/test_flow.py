@@ -365,6 +365,45 @@ def test_relative_thickness_of_sphere_and_cylinder():
     assert relative_thickness(vw.load_mesh(cyl), device="cpu") == pytest.approx(expected, rel=0.02)
 
 
+def test_thinnest_part_sees_a_stalk_the_5th_percentile_does_not():
+    """Two balls 0.35 in radius on a stalk 0.06 thick (capsules, marching cubes): the stalk carries about 2 % of the
+    area, so the area-weighted 5th-percentile thickness reads the balls (above 1), while the thinnest part (the
+    smallest 1-ring median of the thickness along inward vertex normals) reads the stalk: its diameter over the radius
+    of the sphere of equal area. A sphere reads 2 in both."""
+    from capsules import capsules
+    from vnc_warp.flow import relative_thickness, thinnest_part
+
+    sphere = vw.load_mesh(trimesh.creation.icosphere(5, radius=3.0))
+    assert thinnest_part(sphere, device="cpu") == pytest.approx(2.0, rel=0.01)
+    stalk = vw.load_mesh(capsules([((-0.6, 0.0, 0.0), (-0.6, 0.0, 0.0), 0.35), ((0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.35),
+                                   ((-0.6, 0.0, 0.0), (0.6, 0.0, 0.0), 0.03)], nodes=96, blend=0.01))
+    radius = np.sqrt(stalk.area() / (4 * np.pi))
+    assert relative_thickness(stalk, device="cpu") > 1.0
+    assert thinnest_part(stalk, device="cpu") == pytest.approx(0.06 / radius, rel=0.25)
+
+
+def test_a_hanging_arm_shortens_without_its_shoulder_thinning_into_a_stalk():
+    """A torso with an arm 0.07 thick hanging close beside it (tests/capsules.py ARM, FAUST 025's arm), 3000 faces,
+    3 stages (each 11 sub-stages of Eq. (5) between remeshes, as N = 32 flows): the arm fattens toward the body, and
+    the shoulder must not thin meanwhile. Before the neck term of the thin-part rule (code of 36d1669) the shoulder, a
+    neck whose curvature at tau_max also sees the torso, thinned as the arm fattened (there the detail share of
+    Eq. (5) outweighed the turned-around part-scale excess): the thinnest part read 0.171 -> 0.136 at stage 1 (ratio
+    0.796; at N = 16 0.171, 0.165, 0.153, 0.147, 0.133, 0.113 over stages 0-5) while the 5th-percentile thickness
+    rose (0.184 -> 0.340 at N = 4). Now the thinnest part stays above 0.9x (measured 0.171 -> 0.187 -> 1.30: the
+    shoulder stops thinning), the 5th-percentile thickness never falls below 0.8x, and stages 1-2 land within 0.02 of
+    1 - i/N (0.666, 0.333)."""
+    from capsules import ARM, capsules
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        traj = flow(capsules(ARM, nodes=72), stages=3, faces=3000, device="cpu", progress=False, max_iters=60)
+    for i, rec in enumerate(traj.records[1:], start=1):
+        assert rec["thinnest_ratio"] >= 0.9, (i, [r["thinnest"] for r in traj.records])
+        assert rec["thickness_ratio"] >= 0.8, (i, rec["thickness_ratio"])
+        if i < 3:
+            assert abs(rec["t"] - (1.0 - i / 3)) <= 0.02, (i, rec["t"])
+
+
 def test_flow_repairs_what_the_first_remesh_can_and_records_it(caplog):
     """A mesh with a non-manifold edge (a fin face), a duplicated face and two overlapping components, which
     load_mesh refuses, flows: the first remesh repairs it, says so on the ``vnc_warp`` logger, and the trajectory

@@ -12,7 +12,8 @@ from vnc_warp.shapes import random_shape
 
 def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
     """Two 4-stage runs at 600 faces: the first is kept with its filmstrip; every summary number is present and
-    agrees with the per-stage records (max |t_i - (1 - i/N)|, the smallest thickness ratio); the part breakdown
+    agrees with the per-stage records (max |t_i - (1 - i/N)|, the smallest thickness ratios, 5th percentile and
+    thinnest part); the part breakdown
     has the remesh, within-stage remesh and stage parts (contact checks and remeshes within stages too, which the
     table left out), each stage says where its t went (t after the remesh between stages, the remeshes within, the
     S history), and the warm-up before timing is reported. Run again with a budget already spent after one mesh, the second is skipped
@@ -34,6 +35,8 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
         assert np.isclose(run["max_dt"], dev)
         ratios = [r["thickness_ratio"] for r in stages[1:]]
         assert np.isclose(run["min_thickness_ratio"], min(ratios))
+        thinnest = [r["thinnest_ratio"] for r in stages[1:]]
+        assert np.isclose(run["min_thinnest_ratio"], min(thinnest)) and len(run["thinnest"]) == 5
         # where t went: stage 1 starts from stage 0 unremeshed, and a stage that met its budget ends on its history
         assert np.isclose(stages[1]["t_start"], 1.0, atol=1e-5) and stages[0]["t_start"] is None
         for r in stages[1:]:
@@ -48,6 +51,7 @@ def test_flow_report_writes_table_json_and_filmstrip(tmp_path):
     assert report["warmup_seconds"] > 0
     md = (out / "flow_report.md").read_text()
     assert "| shape0.obj |" in md and "S change, one remesh" in md and "remesh.sdf" in md and "stage.remesh" in md
+    assert "smallest thinnest-part ratio" in md and "thinnest part" in md
 
     spent = tmp_path / "spent"
     assert flow_report.main(args[:-1] + [str(spent), "--max-minutes", "1e-6"]) == 0

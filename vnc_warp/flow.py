@@ -43,8 +43,13 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   inward normal times the mean curvature at the largest scale: 1 on a tube, 2 on a ball) the part-scale excess
   of curvature ``max(H(v_k, tau_max) - mean H(tau_max), 0)`` is turned around in Eq. (5), so the part fattens
   toward the shape's mean curvature and merges with its neighbours instead of thinning into a thread; its
-  details are still smoothed. The correction fades out between ``rho = tube_rho`` and ``ball_rho``; balls,
-  tips, flat and concave regions follow Eq. (5) as written. It is refreshed at every evaluation of ``S``.
+  details are still smoothed. Where the part is thinner than its curvature at ``tau_max`` says (``rho < 1``: a
+  neck between a limb and the body, whose ``tau_max`` also sees the body), its curvature at its own scale
+  ``tau_k`` counts as part-scale (up to that of a tube as thick as the neck, and at most twice its curvature at
+  ``tau_max``), and its excess takes off at most the inward part of the deviation, so the neck stops thinning
+  while the limb fattens, instead of thinning into a stalk. The correction fades out between ``rho = tube_rho``
+  and ``ball_rho``; balls, tips, flat and concave regions follow Eq. (5) as written. It is refreshed at every
+  evaluation of ``S``.
 * **Temporal balance**: ``S_init = sum_k s(v_k | M0)``; stage ``i`` ends at ``t_i = S_cur / S_init`` (Eq. 7)
   within ``tolerance`` of its equidistant target ``1 - i/N``. The stage controller plans the steps to the
   next evaluation of ``S`` from the decay rate observed so far and, when a run of steps overshoots the
@@ -141,7 +146,7 @@ from .scale import adaptive_scale, default_scales, scale_curve, vnc_auc
 from .trajectory import Trajectory, resume
 
 __all__ = ["FlowParams", "Trajectory", "FlowError", "flow", "flow_steps", "reference_mean", "total_complexity",
-           "sphericity", "relative_thickness"]
+           "sphericity", "relative_thickness", "thinnest_part"]
 
 # An evaluation makes progress when S falls by more than this share below the stage's best so far.
 _PROGRESS = 1.0e-3
@@ -194,6 +199,13 @@ _BRIDGE_REFINE = 2.0
 _BRIDGE_TRIALS = 8
 _BRIDGE_GAP = 0.01
 
+# The thin-part rule's neck term (THIN_PARTS, "Necks"): where a vertex's curvature at its own scale is above its
+# curvature at tau_max, and at most 1 / _NECK_BOUND times it, it counts as part-scale (up to that of a tube of the
+# vertex's thickness). The necks of FAUST 025's arms read 1.2-1.4 (rho 0.3-0.75); the toe remnants of its stages 28-30
+# read 2.2-15 (rho 0.01-0.45, thinner than 3 edges): unbounded and turned around in full, the term fattened them, and
+# stage 30 from stage 29's state took 300 iterations and the smoothing fallback (23 with the rule before necks)
+_NECK_BOUND = 0.5
+
 THIN_PARTS = """Why limbs became threads, and the thin-part rule that makes them merge instead.
 
 Measured on human_man (5000 faces, stage 0, 16 scales; docs/flow_balance.md has the commands): on the arms
@@ -224,6 +236,28 @@ whatever its radius). The correction fades out between ``tube_rho`` and ``ball_r
 concave regions or parts flatter than the mean (a plate's faces still move apart, concavities still fill).
 With it the total VNC-AUC falls from the first step, every stage meets its budget in a few steps, and limbs
 shorten and fatten until they merge with the body and each other: the compact abstraction of Fig. 9a.
+
+Necks (issue 21 item 3). The part-scale share is read at tau_max, and at a neck between a limb and the body
+tau_max also sees the body: on FAUST 025 (6,000 faces, N = 32, code of 36d1669) the right arm fattened into a
+ball while its shoulder thinned into a stalk (thinnest part 0.152 -> 0.044 over stages 11-16, relative to the
+radius of the sphere of equal area) that the stage-17 remesh cut (the hand dropped, t 0.501 -> 0.409 against a
+target of 0.469). On the shoulder vertices at stage 10 (50 vertices thinner than 0.75x the arm): rho 0.53 (the
+arm 1.38), detail share ``H(tau_k) - H(tau_max)`` +0.014, part-scale excess +0.0075, so the deviation after the
+turn-around stayed +0.0044 and 66 % of them moved inward (0.025 edge lengths per step, none at the clamp) while
+the arm moved outward (-0.078); at stage 12 +0.0062, 77 % inward. The detail share of a neck is not detail: a
+neck thinning raises its curvature at its own scale as a tube's thinning raises it at every scale. ``rho`` says
+how much of it is the part's: a tube as thick as the part is at ``v_k`` has the curvature ``H(tau_max) / rho``
+(``edge / (2 sqrt 3 thickness)``). So where ``H(tau_max) < H(tau_k) <= 2 H(tau_max)`` (``_NECK_BOUND``) the rule
+takes ``min(H(tau_k), H(tau_max) / rho)`` as the part-scale curvature, and its turned-around excess takes off
+at most the inward part of the deviation (kernels/flow.py, ``part_excess``, ``balanced_step``): on the stage-10
+and stage-12 shoulders 4 % and 0 % of the vertices then move inward. A straight tube, a bump on one (``rho >=
+1``), a dent, a ball, a tip, a flat or concave region keep the rule as before, and so does a thread or a thorn
+whose curvature at its own scale is more than twice its curvature at tau_max (a toe's remnant near the end of
+FAUST 025's flow: it is detail, and Eq. (5) shortens it). Turning the neck's excess around in full (pushing it
+out) fattened such remnants too and stalled FAUST 025's stages 30-31 (300 iterations each, then the smoothing
+fallback); bounding the curvature alone still took stage 30 175 iterations and the fallback; the rule adopted took
+43 (23 with the rule before). FAUST 025's arms then shorten into knobs and merge as human_man's do
+(docs/flow_balance.md).
 """
 
 
@@ -443,6 +477,51 @@ def relative_thickness(mesh: Mesh, *, percentile: float = 5.0, samples: int = 40
     return float(np.percentile(hits, percentile) / np.sqrt(area / (4.0 * np.pi)))
 
 
+def _ring_median_min(thickness: np.ndarray, edges: np.ndarray) -> float:
+    """``min_k median{thickness[j] : j = k or j adjacent to k}`` over the vertices whose ray hit (``> 0``); NaN when
+    none did. The median over a vertex's 1-ring ignores a single short ray (a grazing hit near a tip or a crease)."""
+    V = thickness.shape[0]
+    th = np.where(thickness > 0, thickness.astype(np.float64), np.nan)
+    a = np.concatenate([edges[:, 0], edges[:, 1], np.arange(V)])
+    b = np.concatenate([edges[:, 1], edges[:, 0], np.arange(V)])
+    order = np.argsort(a, kind="stable")
+    a, b = a[order], b[order]
+    count = np.bincount(a, minlength=V)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    ring = np.full((V, int(count.max())), np.nan)
+    ring[a, np.arange(a.shape[0]) - start[a]] = th[b]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a ring with no hit at all
+        med = np.nanmedian(ring, axis=1)
+    return float(np.nanmin(med)) if np.isfinite(med).any() else float("nan")
+
+
+def thinnest_part(mesh: Mesh, *, device=None, positions: wp.array | None = None) -> float:
+    """How thick the thinnest part of a closed surface is, relative to its size: a stalk, a thread or a fin of any
+    area.
+
+    Per vertex, the distance through the shape along its inward normal (the thickness the thin-part rule reads);
+    its median over the vertex and its neighbours (so one grazing ray does not count); the smallest such median
+    over the surface, divided by the radius of the sphere of equal area ``sqrt(A / 4 pi)``. Unlike
+    :func:`relative_thickness` (an area-weighted percentile: a stalk that carries a hand carries too little area to
+    move it) one ring of a few vertices is enough: a limb's neck thinning into a stalk drives it down. About 2 for
+    a sphere. VNC-Flow records it per stage beside the 5th-percentile thickness (``thinnest``,
+    ``thinnest_ratio``).
+
+    Args:
+        mesh: a closed, outward-wound :class:`~vnc_warp.mesh.Mesh`.
+        device: Warp device.
+        positions: (V,) vec3 positions overriding ``mesh.vertices``.
+
+    Returns:
+        The dimensionless thickness of the thinnest part (NaN if no inward ray hit).
+    """
+    surface = _Surface.of(mesh, positions.device if positions is not None else get_device(device), positions)
+    area, _ = surface.measures()
+    radius = float(np.sqrt(area / (4.0 * np.pi)))
+    return _ring_median_min(surface.vertex_thickness().numpy(), mesh.topology.edges) / radius
+
+
 def _mesh_digest(mesh: Mesh) -> str:
     h = hashlib.sha256(np.ascontiguousarray(mesh.vertices).tobytes())
     h.update(np.ascontiguousarray(mesh.faces).tobytes())
@@ -596,7 +675,7 @@ class _Stepper:
                 t = taus[0] if p.scale_mode == "small" else taus[-1]
                 self.tau = wp.full(V, np.float32(t), dtype=wp.float32, device=device)
             self.max_move = wp.array(p.step_fraction * local, dtype=wp.float32, device=device)
-            self.part = wp.zeros(V, dtype=wp.float32, device=device)
+            self.part = wp.zeros(V, dtype=wp.vec4, device=device)
             self._thin_parts(curve)
         else:
             self._laplacian()
@@ -658,7 +737,7 @@ class _Stepper:
                 self.lam_rule = self.step_scale * (p.step_fraction / q if q > 0 else 0.0) * self.edge
                 self.lam = min(self.lam_rule, self.step_scale * p.max_lambda * self.edge)
             wp.launch(_k.balanced_step, dim=V,
-                      inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part],
+                      inputs=[self.x, H, n, self.ref, self.lam, self.max_move, self.part, _NECK_BOUND],
                       outputs=[self.x_next], device=self.device)
             self.x, self.x_next = self.x_next, self.x
             return
@@ -925,6 +1004,7 @@ def flow(
                 remesher.adopt(state, traj.info["remesh_spacing"], name)
             rec.update(file=f"stage_{i:03d}.ply", seconds=time.perf_counter() - t0)
             rec["thickness_ratio"] = rec["thickness"] / last["thickness"] if last.get("thickness") else None
+            rec["thinnest_ratio"] = rec["thinnest"] / last["thinnest"] if last.get("thinnest") else None
             traj.meshes.append(state)
             traj.records.append(rec)
             traj.t = np.append(traj.t, rec["t"])
@@ -1115,14 +1195,17 @@ def _digest_arrays(v: np.ndarray, f: np.ndarray) -> str:
 
 
 def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
-    """Per-stage facts of a state, from the device: sphericity, relative thickness, counts, Euler."""
+    """Per-stage facts of a state, from the device: sphericity, relative thickness (5th percentile and thinnest part),
+    counts, Euler."""
     surface = _Surface.of(mesh, device, positions)
     area, volume = surface.measures()
     from .sdf import inward_distances
 
     hits = inward_distances(surface.mesh, surface.x, surface.tri, 4096, span=surface.span())
+    radius = np.sqrt(area / (4.0 * np.pi))
     return {"sphericity": float(36.0 * np.pi * volume**2 / area**3),
-            "thickness": float(np.percentile(hits, 5.0) / np.sqrt(area / (4.0 * np.pi))),
+            "thickness": float(np.percentile(hits, 5.0) / radius),
+            "thinnest": _ring_median_min(surface.vertex_thickness().numpy(), mesh.topology.edges) / float(radius),
             "vertices": mesh.num_vertices, "faces": mesh.num_faces,
             "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
 
