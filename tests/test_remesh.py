@@ -733,3 +733,20 @@ def test_a_bridge_grid_gives_marching_cubes_at_most_sixteen_times_the_faces():
     grid, origin = blend._distance(blend.spacing, _GRIDS[0][0], _Clock(remesher.device, {}))
     _, faces = _extract(grid, origin, blend.spacing, remesher.method, False).host()
     assert 10.0 * 1280 <= faces.shape[0] <= 1.1 * 16.0 * 1280, faces.shape[0]
+
+
+def test_an_ellipsoid_blend_of_a_thin_blade_keeps_its_grid_under_the_node_cap():
+    """The blend fallback's grid spans the state and its moment ellipsoid, a cube as wide as the ellipsoid's longest
+    axis: at the spacing a thin blade's remesh needs, that box held 1.30x the grid's node cap here (2 x 0.25 x 0.012,
+    6,000 faces) and 1.7e10 nodes for sword.obj on an H200 (a ValueError from Warp ended its flow). The blend's
+    spacing is coarsened to the cap (oracle: the node count of the box, as vnc_warp.remesh.finest_spacing counts it)."""
+    from vnc_warp.remesh import _MAX_GRID_NODES, _EllipsoidBlend
+
+    blade = trimesh.creation.box((2.0, 0.25, 0.012)).subdivide_to_size(0.05)
+    remesher = _Remesher(faces=6000, device="cpu", warn=False)
+    m, _ = remesher(trimesh.Trimesh(blade.vertices, blade.faces))
+    x = wp.array(m.vertices - remesher.origin, dtype=wp.vec3, device="cpu")
+    tri = wp.array(np.asarray(m.faces, np.int32).reshape(-1), dtype=wp.int32, device="cpu")
+    blend = _EllipsoidBlend(remesher, x, tri)
+    assert np.prod((blend.hi - blend.lo) / remesher.spacing + 1.0) > _MAX_GRID_NODES  # the state's own spacing would not fit
+    assert np.prod((blend.hi - blend.lo) / blend.spacing + 1.0) <= _MAX_GRID_NODES * (1.0 + 1e-6)

@@ -1664,7 +1664,7 @@ class _Blend:
     remesher's unless given, over :attr:`lo`, :attr:`hi`), then reused for every ``a``.
 
     Subclasses set ``lo``, ``hi`` (bounds of both shapes), ``what`` (the report's words) and ``name`` (the result's
-    name suffix) in their constructor after calling this one's."""
+    name suffix) in their constructor after calling this one's, then :meth:`_fit_spacing`."""
 
     def __init__(self, remesher: _Remesher, x: wp.array, tri: wp.array, *, spacing: float | None = None):
         self.remesher = remesher
@@ -1676,6 +1676,13 @@ class _Blend:
         self.euler = self.v.shape[0] - self.f.shape[0] // 2
         self.lo, self.hi = self.v.min(axis=0), self.v.max(axis=0)
         self.grids: dict = {}
+
+    def _fit_spacing(self, coarsest: float = 0.0) -> None:
+        """Coarsen the spacing to at least ``coarsest`` and to the grid's node cap over the bounds ``lo``, ``hi`` (both
+        shapes'): the state's own spacing over a larger box can exceed the cap by far (sword.obj's blade, spacing
+        set by its thinness, inside the cube of its moment ellipsoid's longest axis: 1.7e10 nodes, on an H200 at
+        765207b; a blade of 2 x 0.25 x 0.012 at 6,000 faces: 1.30x the cap)."""
+        self.spacing = max(self.spacing, float(coarsest), finest_spacing(self.hi - self.lo))
 
     def _sample(self, wm: wp.Mesh, area: float, h: float, shift, clock: _Clock) -> tuple[wp.array, np.ndarray]:
         origin = self.lo - (2.0 - np.asarray(shift)) * h
@@ -1747,6 +1754,7 @@ class _EllipsoidBlend(_Blend):
         self.roundness = 0.0
         half = np.maximum(np.sqrt(((self.axes * self.radii[None, :]) ** 2).sum(axis=1)), self.radii.max())
         self.lo, self.hi = np.minimum(self.lo, self.centre - half), np.maximum(self.hi, self.centre + half)
+        self._fit_spacing()
 
     @property
     def what(self) -> str:
@@ -1787,8 +1795,8 @@ class _SurfaceBlend(_Blend):
         self.area_q = float(_area_and_centroid(v_q, f_q)[0])
         self.lo, self.hi = np.minimum(self.lo, v_q.min(axis=0)), np.maximum(self.hi, v_q.max(axis=0))
         # no finer than marching cubes' _MAX_BLEND_OVERSAMPLE times the face count, nor past the grid's node cap
-        coarsest = np.sqrt(_MC_FACES_PER_AREA * max(self.area, self.area_q) / (_MAX_BLEND_OVERSAMPLE * self.f.shape[0]))
-        self.spacing = max(self.spacing, float(coarsest), finest_spacing(self.hi - self.lo))
+        self._fit_spacing(np.sqrt(_MC_FACES_PER_AREA * max(self.area, self.area_q)
+                                  / (_MAX_BLEND_OVERSAMPLE * self.f.shape[0])))
         self.grids_q: dict = {}
 
     def _blend(self, grid, origin, h, shift, a, out, clock) -> None:
