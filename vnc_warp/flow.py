@@ -1036,8 +1036,9 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
     jumps across a window along the path (a handle closes, a part goes, at some ``a``) the bracket shrinks to
     ``_BRIDGE_GAP``, and that stage records the first state past the jump (status ``bridge jump``, the genus-change
     exception); the stages after it are bridged as before. The path's first state, at ``a = _BRIDGE_GAP``, is made
-    first: where it is already below stage ``i``'s window it is that jump, and a window the path has already passed
-    ends the bridge (the stages after it flow on from ``Q``).
+    first: where it is already below stage ``i``'s window it is that jump, and a stage whose window the path has
+    already passed (below the previous stage's jump) records the path's next state, ``_BRIDGE_GAP`` further, as its
+    exception, without a search.
 
     Returns:
         ``([(state, record), ...], None)`` for the bridged stages, in order, or ``([], why)`` when the path lands no
