@@ -440,10 +440,11 @@ class _Surface:
         lo, hi = _device_bounds(self.x)
         return float(np.linalg.norm(hi - lo))
 
-    def vertex_thickness(self) -> wp.array:
-        """(V,) distance through the shape from each vertex along its inward normal (-1: no hit)."""
+    def vertex_thickness(self, span: float | None = None) -> wp.array:
+        """(V,) distance through the shape from each vertex along its inward normal (-1: no hit); ``span``:
+        :meth:`span` of the current positions, if the caller already read it back."""
         out = wp.empty(self.x.shape[0], dtype=wp.float32, device=self.x.device)
-        span = self.span()
+        span = self.span() if span is None else span
         wp.launch(_ks.inward_thickness, dim=self.x.shape[0],
                   inputs=[self.mesh.id, self.x, self.vertex_normals(), 1e-5 * span, 2.0 * span], outputs=[out],
                   device=self.x.device)
@@ -1202,11 +1203,12 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
     area, volume = surface.measures()
     from .sdf import inward_distances
 
-    hits = inward_distances(surface.mesh, surface.x, surface.tri, 4096, span=surface.span())
+    span = surface.span()  # one read of the bounds for both kinds of rays
+    hits = inward_distances(surface.mesh, surface.x, surface.tri, 4096, span=span)
     radius = np.sqrt(area / (4.0 * np.pi))
     return {"sphericity": float(36.0 * np.pi * volume**2 / area**3),
             "thickness": float(np.percentile(hits, 5.0) / radius),
-            "thinnest": _ring_median_min(surface.vertex_thickness().numpy(), mesh.topology.edges) / float(radius),
+            "thinnest": _ring_median_min(surface.vertex_thickness(span).numpy(), mesh.topology.edges) / float(radius),
             "vertices": mesh.num_vertices, "faces": mesh.num_faces,
             "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
 
