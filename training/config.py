@@ -187,6 +187,8 @@ class DataConfig:
             trajectory's suffix is a balanced trajectory); ``"item"``: the item's own surface (auto-encoding
             every stage, the plain VAE).
         stage0_share: with ``encoder_input="suffix"``, the share of items whose encoder input is stage 0.
+        detail_share: with ``encoder_input="suffix"``, the share of items replaced by their shape's stage 0 at
+            t = 1 (the detailed input auto-encoded; see :class:`~vnc_warp.training.train.SuffixInput`).
         symmetry: apply one of the 8 symmetries of the box's horizontal square (rotations by quarter turns about
             y, with or without the mirror x -> -x), drawn per item, to the encoder surface, the queries and the
             on-surface points alike (positions and normals); the box [-1, 1]^3 and the TSDF values are invariant.
@@ -201,6 +203,7 @@ class DataConfig:
     num_workers: int = 4
     encoder_input: str = "stage0"
     stage0_share: float = 0.5
+    detail_share: float = 0.0
     symmetry: bool = False
 
 
@@ -289,6 +292,8 @@ class TrainConfig:
             raise ValueError(f"data.encoder_input must be 'stage0', 'suffix' or 'item', got {d.encoder_input!r}")
         if not 0.0 <= d.stage0_share <= 1.0:
             raise ValueError(f"data.stage0_share must be in [0, 1], got {d.stage0_share}")
+        if not 0.0 <= d.detail_share <= 1.0:
+            raise ValueError(f"data.detail_share must be in [0, 1], got {d.detail_share}")
         if lo.tsdf not in ("l1", "mse"):
             raise ValueError(f"loss.tsdf must be 'l1' or 'mse', got {lo.tsdf!r}")
         if not lo.kl_time_ratio >= 1.0:

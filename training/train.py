@@ -155,20 +155,28 @@ class SuffixInput(Stage0Input):
     trajectory that starts at stage s has ``S_init = S_s`` and passes stage j at ``S_j / S_s = t_j / t_s``, with
     equal stage budgets again (``1 - (j - s) / (N - s)`` for a balanced flow). So every stage is an encoder input
     with a true target at every later time, not only the ~one stage 0 per shape that :class:`Stage0Input` shows
-    the encoder. The draw depends on ``(seed, epoch, i)`` only (reproducible, resumable, worker-safe). Needs the
-    stages' times: ``base.stage_times()`` when it exists, otherwise the items' ``t`` read once.
+    the encoder. With ``detail_share`` > 0 an item is, with that probability, its shape's stage 0 encoded from
+    itself at t = 1 instead (the detailed input auto-encoded: the t = 1 end of the task, which the draw above
+    gives only the ~1/(N+1) stage-0 items, as a plain VAE's uniform items do). The draw depends on
+    ``(seed, epoch, i)`` only (reproducible, resumable, worker-safe); with ``detail_share`` = 0 it is the draw of
+    the plain suffix. Needs the stages' times: ``base.stage_times()`` when it exists, otherwise the items' ``t``
+    read once.
 
     Args:
         base: the trajectory items (``shape_id``, ``stage``, ``t``, ``surface``, ...).
         stage0_share: probability of encoding stage 0, as at inference.
         seed: base seed of the draws.
+        detail_share: probability that an item is replaced by its shape's stage 0 at t = 1.
     """
 
-    def __init__(self, base: Dataset, *, stage0_share: float = 0.5, seed: int = 0) -> None:
+    def __init__(self, base: Dataset, *, stage0_share: float = 0.5, seed: int = 0, detail_share: float = 0.0) -> None:
         super().__init__(base)
         if not 0.0 <= stage0_share <= 1.0:
             raise ValueError(f"SuffixInput: stage0_share must be in [0, 1], got {stage0_share}")
+        if not 0.0 <= detail_share <= 1.0:
+            raise ValueError(f"SuffixInput: detail_share must be in [0, 1], got {detail_share}")
         self.stage0_share, self.seed, self.epoch = float(stage0_share), int(seed), 0
+        self.detail_share = float(detail_share)
         times = base.stage_times() if hasattr(base, "stage_times") else [float(base[i]["t"]) for i in range(len(base))]
         first: dict[tuple[int, int], int] = {}
         for i, key in enumerate(self.ids):
@@ -186,18 +194,25 @@ class SuffixInput(Stage0Input):
         super().set_epoch(epoch)
         self.epoch = int(epoch)
 
-    def start(self, i: int) -> int:
-        """The stage whose surface item ``i`` is encoded from, in this epoch."""
+    def draw(self, i: int) -> tuple[int, int]:
+        """``(target, start)`` of item ``i`` in this epoch: the index of the item it trains on (``i``, or its
+        shape's stage 0 under ``detail_share``) and the stage whose surface is encoded."""
         sid, st = self.ids[i]
         earlier = self.earlier[(sid, st)]
         rng = np.random.default_rng([self.seed, self.epoch, int(i), 7])
+        if self.detail_share > 0.0 and st != 0 and rng.random() < self.detail_share:
+            return self.first[(sid, 0)], 0
         if not earlier or rng.random() < self.stage0_share:
-            return 0
-        return int(earlier[rng.integers(len(earlier))])
+            return int(i), 0
+        return int(i), int(earlier[rng.integers(len(earlier))])
+
+    def start(self, i: int) -> int:
+        """The stage whose surface item ``i`` is encoded from, in this epoch."""
+        return self.draw(i)[1]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        i, s = self.draw(i)
         sid, st = self.ids[i]
-        s = self.start(i)
         if s == 0:
             return super().__getitem__(i)
         item = dict(self.base[i])
@@ -277,7 +292,8 @@ def open_dataset(data: str | os.PathLike | Dataset, config: TrainConfig, *, spli
     if d.encoder_input == "stage0":
         dataset = Stage0Input(dataset)
     elif d.encoder_input == "suffix":
-        dataset = SuffixInput(dataset, stage0_share=d.stage0_share, seed=config.seed)
+        dataset = SuffixInput(dataset, stage0_share=d.stage0_share, seed=config.seed,
+                              detail_share=d.detail_share)
     return Symmetric(dataset, seed=config.seed) if d.symmetry else dataset
 
 

@@ -368,6 +368,41 @@ def test_suffix_input_is_a_trajectory_from_an_earlier_stage():
     assert first != [wrapped.start(i) for i in range(len(ds))]
 
 
+def test_suffix_detail_share_auto_encodes_stage_0_with_that_probability():
+    """With ``detail_share`` p an item of a later stage is, with probability p, its shape's stage 0 encoded from
+    itself at t = 1 (same shape id, stage 0, t = 1, encoder surface = target's own stage-0 surface points);
+    otherwise the plain suffix draw. Oracle for p = 0: the suffix rule written out here (stage 0 with
+    ``stage0_share``, else uniform over stages 1..j, from the generator seeded by (seed, epoch, i, 7)), so the
+    recipe without the share is the one every earlier run trained with."""
+    ds = EllipsoidTrajectories(num_shapes=3, num_stages=6, num_surface=64, num_queries=20, num_on_surface=64, seed=2)
+    plain, detail = SuffixInput(ds, stage0_share=0.5, seed=5), SuffixInput(ds, stage0_share=0.5, seed=5,
+                                                                            detail_share=0.3)
+    ids = ds.item_ids()
+    replaced = later = 0
+    for epoch in range(10):
+        plain.set_epoch(epoch)
+        detail.set_epoch(epoch)
+        for i, (sid, st) in enumerate(ids):
+            rng = np.random.default_rng([5, epoch, i, 7])
+            earlier = [s for s in range(1, st + 1) if 1.0 - s / 5 > 0]
+            s_old = 0 if not earlier or rng.random() < 0.5 else earlier[rng.integers(len(earlier))]
+            assert plain.draw(i) == (i, s_old)
+            target, s = detail.draw(i)
+            if st == 0:
+                assert (target, s) == (i, 0)
+                continue
+            later += 1
+            if ids[target] != (sid, st):
+                replaced += 1
+                assert ids[target] == (sid, 0) and s == 0
+                item, own = detail[i], ds[target]
+                assert int(item["stage"]) == 0 and int(item["shape_id"]) == sid and float(item["t"]) == 1.0
+                assert torch.equal(item["surface"], own["surface"])
+    assert 0.22 < replaced / later < 0.38
+    with pytest.raises(ValueError, match="detail_share"):
+        SuffixInput(ds, detail_share=1.5)
+
+
 def test_symmetric_moves_every_point_set_by_one_box_symmetry():
     """Symmetric applies one of the 8 symmetries of the box's horizontal square per item: encoder surface,
     queries and on-surface points (positions and normals) by the same orthogonal matrix with y fixed and
