@@ -54,7 +54,15 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   within ``tolerance`` of its equidistant target ``1 - i/N``. The stage controller plans the steps to the
   next evaluation of ``S`` from the decay rate observed so far and, when a run of steps overshoots the
   target, searches the chord between the last state above the window and the state below it (secant steps
-  on the fraction of the chord) until ``t`` lands in the window. Exceptions, recorded per stage as
+  on the fraction of the chord) until ``t`` lands in the window (status ``budget``: only a stage whose ``t`` lies in
+  its window has it). Where no state on the chord lands in the window (``S`` jumps along it: on the H200,
+  brucewick.obj's stage 29 of 32 from t 0.117 to 0.068 at one point of the chord, around its window 0.094 +- 0.005,
+  where a thorn formed; it recorded the nearest trial, t 0.117, as ``budget``), the stage goes back to its best state
+  above the window and halves the step, as after a rise (see **Descent**; the record's ``chord_misses`` counts the
+  chords searched in vain), at most ``_CHORD_RETRIES`` times and within ``max_iters``; a stage that still misses
+  (or a baseline, which has no step to halve) ends at its best state above the window with status ``missed``, the
+  chords in ``exception``, and goes to the fallbacks below as a stage short of its window does (``smoothed`` or
+  ``blended`` where one lands it). Exceptions, recorded per stage as
   ``status`` and ``exception``: the **last stage** (target ``t = 0``, below the VNC-AUC of any meshed
   sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``);
   a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
@@ -159,6 +167,11 @@ _RISE_INIT = 0.05
 # A run of steps that climbs more than this many stage tolerances above the stage's best S, after S fell below its
 # segment's start, has passed the minimum of Eq. (5) at this step size: it is backtracked (issue 21, see _run_stage)
 _CLIMB = 1.0
+# A run of steps that overshoots the window and whose chord holds no state in it (S jumps along the chord: on the H200,
+# brucewick.obj's stage 29 of 32, t 0.117 -> 0.068 at one point of the chord, around the window 0.094 +- 0.005, where
+# a thorn formed) is backtracked at half the step, at most this many times per stage; then the stage ends above its
+# window (status "missed") and goes to the fallbacks. Before, it recorded the chord's nearest trial as "budget".
+_CHORD_RETRIES = 3
 # A stage where Eq. (5) stops lowering S short of its window (max_iters or converged: a dumbbell whose neck fattened
 # into a waist, at t 0.75, 3000 faces: every run of steps from there raised S, whatever the step, the scales (phi 1/8
 # to 1, tau_min, tau_max) or the thin-part rule; hammer, mushroom and nefertiti on the H200) went on
@@ -1163,8 +1176,8 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
 
 def _merge_substages(subs: list[dict]) -> dict:
     """One stage record from its sub-stages' (:class:`FlowParams` ``substage_budget``): the last one's state, ``t``
-    and status; iterations, evaluations and seconds summed; the first one's remesh as the stage's, the later ones'
-    with the remeshes within; the history on one iteration axis; the earlier sub-stages' exceptions kept."""
+    and status; iterations, evaluations, chord misses and seconds summed; the first one's remesh as the stage's, the
+    later ones' with the remeshes within; the history on one iteration axis; the earlier sub-stages' exceptions kept."""
     rec = dict(subs[-1])
     if len(subs) == 1:
         return rec
@@ -1183,6 +1196,9 @@ def _merge_substages(subs: list[dict]) -> dict:
             notes.append(f"sub-stage {j + 1} of {len(subs)}: {sub['exception']}")
     if rec.get("exception"):
         notes.append(rec["exception"])
+    misses = sum(sub.get("chord_misses", 0) for sub in subs)
+    if misses:
+        rec["chord_misses"] = misses
     rec.update(iterations=offset, evaluations=sum(s["evaluations"] for s in subs), history=history,
                remeshes_within=within, parts=parts, exception="; ".join(notes) or None,
                substages=[{"t": s["t"], "target_t": s["target_t"], "iterations": s["iterations"], "status": s["status"]}
@@ -1214,12 +1230,13 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
 
 
 def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, bar, rec: dict, remesher=None, *,
-               goal: float | None = None, previous: dict | None = None):
+               goal: float | None = None, previous: dict | None = None, stepper_type: type = _Stepper):
     """Stage ``i`` on ``mesh`` (already remeshed): steps of Eq. (5) until ``t`` is within ``tolerance`` of
     ``1 - goal`` (default ``goal = i/N``; a sub-stage's is a fraction in between; see the module docstring); fills
     ``rec`` and returns the state and its device positions. A stage that stalls is remeshed on the way
     (``remesher``, if any; ``stall_remeshes``). ``previous``: the record of the stage (or sub-stage) before, whose
-    fallback tells this one's where to start."""
+    fallback tells this one's where to start. ``stepper_type``: the class of the stage's steppers (Eq. 5 and ``S``;
+    the fallbacks make their own), a subclass of :class:`_Stepper` in tests that inject how ``S`` is measured."""
     previous = previous or {}
     early_blend = previous.get("status") == "blended"
     from .remesh import _Clock
@@ -1230,7 +1247,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     final = goal >= 1.0
     target = S_init * (1.0 - goal)
     tol = p.tolerance * S_init
-    stepper = _Stepper(mesh, taus, p, device)
+    stepper = stepper_type(mesh, taus, p, device)
     S_a = stepper.S_start if stepper.S_start is not None else stepper.complexity()
     clock.lap("setup")
     history = [[0, S_a]]
@@ -1241,7 +1258,9 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     # longer stalls (t 0.31 -> 0.15 at stage 2 of tests/test_flow.py's shape), which is not the paper's ablation;
     # and a shape with a handle must pass through a rise of S until a remesh closes the hole
     descent = p.method == "vnc" and p.scale_mode == "adaptive" and _euler(mesh) == 2
-    part_a = wp.clone(stepper.part) if descent else None
+    # the thin-part correction of the best state, for a backtrack: after a rise (descent only) or a chord miss (any
+    # stage of Eq. (5))
+    part_a = wp.clone(stepper.part) if p.method == "vnc" else None
     # the stage's best state over its remeshes: (S, connectivity, positions)
     kept = None
     contact = remesher is not None and p.method == "vnc"
@@ -1249,6 +1268,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     rate = None
     since, within, ahead, steady = 0, [], p.eval_every // 2, 0
     early = False
+    # the overshoots whose chord held no state in the window: (S above it, S below it, the nearest trial's S)
+    misses = []
     # a stage whose fallbacks can take it on goes to them as soon as Eq. (5) is seen to be too slow for its window
     cut, cut_ok = None, (not final and p.method == "vnc" and p.scale_mode == "adaptive" and p.early_fallback
                          and (p.smoothing_fallback or (p.blend_fallback and remesher is not None)))
@@ -1296,7 +1317,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             stale = stale + 1 if S_b > S_a * (1.0 - _PROGRESS) else 0
             if S_b < S_a:
                 wp.copy(x_a, stepper.x)
-                if descent:
+                if part_a is not None:
                     wp.copy(part_a, stepper.part)
                 if descent and not final and S_b < S_a * (1.0 - _PROGRESS):
                     # the step held: the next run of steps may take larger ones (see FlowParams.step_growth). Not in
@@ -1347,9 +1368,23 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 continue
         else:
             if S_b < target - tol:
-                S_b, found = _search_chord(stepper, x_a, S_a, S_b, target, tol, history, it_a, it)
+                S_c, found = _search_chord(stepper, x_a, S_a, S_b, target, tol, history, it_a, it)
                 evaluations += found
                 clock.lap("evaluations")
+                if abs(S_c - target) > tol:
+                    # no state on the chord lands in the window (S jumps along it: a thorn formed): not the
+                    # stage's budget. Back to the best state above the window at half the step, as after a rise;
+                    # the baselines have no step to halve, and a stage out of retries ends above its window
+                    misses.append((S_a, S_b, S_c))
+                    if p.method == "vnc" and len(misses) <= _CHORD_RETRIES:
+                        stepper.backtrack(x_a, part_a)
+                        ahead = p.eval_every // 2
+                        history.append([it, S_a])
+                        steady = it
+                    else:
+                        status = "missed"
+                    continue
+                S_b = S_c
             status = "budget"
             S_a = S_b
             continue
@@ -1374,7 +1409,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             history.append([it, S_a])
             continue
         within.append(report.to_dict())
-        stepper = _Stepper(mesh, taus, p, device, step_scale=step_scale)
+        stepper = stepper_type(mesh, taus, p, device, step_scale=step_scale)
         S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
         S_seg = S_a
         x_a = wp.clone(stepper.x)
@@ -1386,7 +1421,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             # the join already took S into or below the window: the stage records it, as a stage whose remesh
             # between stages did
             status = "remesh"
-    if status in ("max_iters", "converged", "final"):
+    if status in ("max_iters", "converged", "final", "missed"):
         # a stage that cannot go on keeps its best state, also one from before a remesh within the stage
         wp.copy(stepper.x, x_a)
         if kept is not None and kept[0] < S_a:
@@ -1395,7 +1430,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     smoothed = None
     # not the last stage: its target t = 0 is out of reach by design (see its exception), and no later stage can
     # repeat its state
-    if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
+    if (status in ("max_iters", "converged", "missed") and not final and S_a > target + tol and p.method == "vnc"
             and p.scale_mode == "adaptive" and not early and p.smoothing_fallback):
         smoothed = _smoothing_fallback(stepper, taus, p, device, S_a, target, tol, history, it,
                                        start=(previous.get("smoothing") or [None])[-1])
@@ -1406,7 +1441,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             rec["smoothing"] = [[kind, dt] for kind, dt in steps]
             clock.lap("fallback")
     blended = None
-    if (status in ("max_iters", "converged") and not final and S_a > target + tol and p.method == "vnc"
+    if (status in ("max_iters", "converged", "missed") and not final and S_a > target + tol and p.method == "vnc"
             and p.scale_mode == "adaptive" and remesher is not None and p.blend_fallback):
         blended = _ellipsoid_blend(stepper, taus, p, device, remesher, S_a, target, tol, history,
                                    it + evaluations)
@@ -1438,8 +1473,23 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     elif status == "final":
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing, at t = {S_a / S_init:.4f}")
-    elif status in ("max_iters", "converged"):
-        stop = f"too slow after {it} iterations" if cut is not None else f"{status} after {it} iterations"
+    elif status in ("max_iters", "converged", "missed"):
+        if cut is not None:
+            stop = f"too slow after {it} iterations"
+        elif status == "missed":
+            stop = f"no state in the window after {it} iterations"
+        else:
+            stop = f"{status} after {it} iterations"
+        # a stage that passed its window without landing in it did descend
+        failed = "did not land in the window" if status == "missed" else "did not descend"
+        if misses:
+            S_hi, S_lo, S_near = misses[-1]
+            retried = len(misses) - (status == "missed")
+            exception = ((exception + "; ") if exception else "") + (
+                f"{len(misses)} run(s) of steps overshot the window with no state in it on their chord (S jumps "
+                f"along the chord; the last from t {S_hi / S_init:.4f} to {S_lo / S_init:.4f}, its nearest trial "
+                f"{S_near / S_init:.4f})" + (f"; {retried} backtrack(s) to the best state above the window at half the "
+                                              "step" if retried else "; a baseline has no step to halve"))
         if cut is not None:
             exception = ((exception + "; ") if exception else "") + (
                 f"Eq. (5) at its rate over the last {2 * p.eval_max} iterations would need {cut[0]:.0f} more to reach "
@@ -1449,7 +1499,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                 f"from a blended state, no progress in {stale} evaluations; no smoothing tried")
         if smoothed is not None:
             exception = ((exception + "; ") if exception else "") + (
-                f"Eq. (5) did not descend ({stop}); {len(smoothed[3])} implicit smoothing "
+                f"Eq. (5) {failed} ({stop}); {len(smoothed[3])} implicit smoothing "
                 f"step(s) ({', '.join(f'{kind} dt {d:g}' for kind, d in smoothed[3])}; dt in squared edge lengths) "
                 f"took t to "
                 f"{smoothed[1] / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
@@ -1458,14 +1508,17 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         elif blended is None:
             exception = ((exception + "; ") if exception else "") + (
                 f"{status} after {it} iterations at t = {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f}); "
-                "recording the t reached")
+                + ("recording the best state above the window" if status == "missed" else "recording the t reached"))
         if blended is not None:
             if smoothed is None:
                 exception = ((exception + "; ") if exception else "") + (
-                    f"Eq. (5) did not descend ({stop})")
+                    f"Eq. (5) {failed} ({stop})")
             exception += (f"; the SDF {blended[4].why_level_set} ({blended[2]} trial(s)) took t to {S_a / S_init:.4f} (target {max(target, 0.0) / S_init:.4f})")
             if abs(S_a - target) <= tol:
                 status = "blended"
+    if misses:
+        # a stage that landed after a chord miss has no exception; its record says how many chords it searched in vain
+        rec["chord_misses"] = len(misses)
     rec.update(t=S_a / S_init, S=S_a, target_t=max(target, 0.0) / S_init, iterations=it, evaluations=evaluations,
                status=status, exception=exception, history=history, remeshes_within=within,
                **_facts(state, device, None if status == "collapsed" else stepper.x))
@@ -1630,7 +1683,9 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
                   history: list, it_a: int, it_b: int) -> tuple[float, int]:
     """Land ``S`` in ``[target - tol, target + tol]`` on the chord from ``x_a`` (``S_a`` above the window) to the
     current state (``S_b`` below it): secant steps on the chord fraction, each bracket kept. Leaves the state
-    found in ``stepper.x``; returns its ``S`` and the evaluations made."""
+    found in ``stepper.x``; returns its ``S`` and the evaluations made. Where no trial lands in the window (``S``
+    jumps along the chord), the trial nearest the target (or the chord's end) is left and its ``S`` returned: the
+    caller checks the window (a stage backtracks, see :func:`_run_stage`)."""
     x_b = wp.clone(stepper.x)
     lo, hi, S_lo, S_hi = 0.0, 1.0, S_a, S_b
     best, best_S = 1.0, S_b
