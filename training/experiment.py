@@ -128,7 +128,8 @@ class ExperimentConfig:
         max_minutes: wall-clock minutes of one call of :func:`run_experiment`, counted from its start: training
             stops with a checkpoint at the end of the first step past it, generation before the next prediction,
             and the call returns with ``unfinished`` set; the same call again resumes (the run is the one trained
-            in one go). None: no limit. Flows, the dataset and the scoring are not cut.
+            in one go), scoring before its next job (the running ones end and are kept). None: no limit. Flows and
+            the dataset are not cut.
         calibration_steps: steps timed before the step count of a budgeted model is fixed.
         min_steps: fewest steps of a budgeted model.
         data_workers: DataLoader workers of every model (None: each section's ``data.num_workers``).
@@ -333,6 +334,12 @@ def _tiny_backbone() -> ModelConfig:
                        chunk_size=16384, time_tokens=2, time_freq_dim=64, modulator_depth=1, sdf_init=0.1)
 
 
+# SDF-remesh grid of the real meshes in the CPU presets: at 40 nodes the first remesh of human_man.obj at 1280 faces
+# refused (its fingers, thinner than the 0.047 spacing, broke off: 2.0 % of the area farther than 2 edge lengths), so
+# cpu-smoke skipped C-VAE-II; at 64 it flows in 9.6 s on one CPU thread (automatic: 43 s)
+_SMALL_GRID = 64
+
+
 def _cpu_smoke() -> ExperimentConfig:
     """About 2 minutes on a 2-core CPU: 6 shapes of 642 vertices (one held out), Spot and the SMPL body
     remeshed to 1280 faces for training, fandisk held out, 3 stages flowed in one piece each (no sub-stages),
@@ -343,7 +350,7 @@ def _cpu_smoke() -> ExperimentConfig:
         name="cpu-smoke", num_shapes=6, shape_seed=0, subdivisions=3, holdout_shapes=1,
         train_meshes=("spot_lowres.obj", "human_man.obj"), holdout_meshes=("fandisk.obj",),
         distill_mesh="human_man.obj",
-        real_faces=1280, real_resolution=40, stages=3, max_iters=200, substage_budget=1 / 3, flow_workers=1,
+        real_faces=1280, real_resolution=_SMALL_GRID, stages=3, max_iters=200, substage_budget=1 / 3, flow_workers=1,
         num_samples=(2048, 2048, 2048),
         num_reference=1024, grid_resolution=32, backbone=_tiny_backbone(),
         **_sections(lr=1e-3, steps=500, warmup=20, common=small),
@@ -399,7 +406,7 @@ def _cpu_rehearsal() -> ExperimentConfig:
     return dataclasses.replace(
         cfg, name="cpu-rehearsal", num_shapes=2, holdout_shapes=1, subdivisions=3, num_humanoids=3,
         holdout_humanoids=1, humanoid_voxel=0.02, train_meshes=("spot_lowres.obj", "goathead.obj"),
-        distill_stages=4, real_faces=1000, real_resolution=40, stages=2, max_iters=60, flow_workers=2,
+        distill_stages=4, real_faces=1000, real_resolution=_SMALL_GRID, stages=2, max_iters=60, flow_workers=2,
         flow_budget_s=None, num_samples=(2048, 1024, 3072), num_reference=1024, grid_resolution=32,
         backbone=_tiny_backbone(), **_sections(lr=1e-3, steps=400, warmup=20, common=small),
         repeats=2, distill_repeats=4, train_budget_s=40.0, distill_budget_s=30.0, max_minutes=None,
@@ -811,21 +818,39 @@ def _stage_times(traj_dir: Path, times: tuple[float, ...]) -> list[float]:
 
 
 def _eval_job(job: dict) -> dict:
-    """Score one prediction folder against its trajectory; module-level for the process pool.
+    """Score the prediction of one folder nearest ``job["t"]`` (every one when it is None) against its trajectory,
+    without the sampling floors, or compute the trajectory's floors once (``job["pred"]`` None); module-level for
+    the process pool.
 
     Each scored entry gets ``t_nominal``: the time of ``job["times"]`` it was queried for (:func:`_stage_times`).
     """
-    from .metrics import evaluate_trajectory, read_prediction_dir
+    from .metrics import evaluate_trajectory, read_prediction_dir, sampling_floors
 
-    preds, _ = read_prediction_dir(job["pred"])
-    report = evaluate_trajectory(preds, job["gt"], pred_frame="world", n_points=job["n_points"], n_emd=job["n_emd"],
-                                 seed=job["seed"])
     queried = _stage_times(Path(job["gt"]), tuple(job["times"]))
-    for entry in report["per_t"]:
-        entry["t_nominal"] = [t for t, q in zip(job["times"], queried) if abs(q - entry["t"]) < 1e-9]
+    if job["pred"] is None:
+        report = sampling_floors(job["gt"], queried, n_points=job["n_points"], n_emd=job["n_emd"], seed=job["seed"])
+    else:
+        preds, _ = read_prediction_dir(job["pred"])
+        if job.get("t") is not None:  # one prediction of the folder: the one nearest t
+            t = min(preds, key=lambda q: abs(q - job["t"]))
+            preds = {t: preds[t]}
+        report = evaluate_trajectory(preds, job["gt"], pred_frame="world", n_points=job["n_points"],
+                                     n_emd=job["n_emd"], seed=job["seed"], floors=False)
+        for entry in report["per_t"]:
+            entry["t_nominal"] = [t for t, q in zip(job["times"], queried) if abs(q - entry["t"]) < 1e-9]
     tmp = Path(job["out"] + ".tmp")
     tmp.write_text(json.dumps(report, indent=1))
     os.replace(tmp, job["out"])
+    return report
+
+
+def _with_floors(report: dict, floors: dict) -> dict:
+    """``report`` of :func:`_eval_job` with the trajectory's sampling floors put where
+    :func:`~vnc_warp.training.metrics.evaluate_trajectory` puts them."""
+    for entry in report["per_t"]:
+        if "error" not in entry:
+            entry["floor"] = floors["stages"][str(entry["stage"])]
+    report["sampling_floor"] = floors["stage0"]
     return report
 
 
@@ -1081,7 +1106,9 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
 
     # step 4: evaluation, latent anatomy, results, figures
     with clock.stage("evaluate", log):
-        results["evaluation"] = _evaluate(targets, holdout, distill, preds, work, config)
+        results["evaluation"], left = _evaluate(targets, holdout, distill, preds, work, config, log, deadline)
+    if left:
+        return _step_summary(last_step, results, clock, log, unfinished=[f"evaluate ({left} jobs left)"])
     with clock.stage("latent_anatomy", log):
         results["latent_anatomy"] = _anatomy(models, holdout, out, config, notes)
     results["environment"] = {"device": str(torch_device), "torch": torch.__version__, "warp": wp.__version__,
@@ -1186,42 +1213,89 @@ _GROUPS = {"humanoid": "held-out humanoids", "blob": "held-out blobs", "real": "
 
 
 def _evaluate(targets: dict[str, list[_Shape]], holdout: list[_Shape], distill: _Shape | None, preds: Path, work: Path,
-              config: ExperimentConfig) -> dict:
-    jobs, reports = [], {m: {} for m in targets}
+              config: ExperimentConfig, log: Callable[[str], None] = lambda _: None,
+              deadline: float | None = None) -> tuple[dict | None, int]:
+    """Score every prediction (one job per method, trajectory and t: ~5x as many jobs as folders, so that the
+    workers stay busy to the end) and every scored trajectory's sampling floors (one job per trajectory: the
+    methods share them); each job's report is cached in ``work/eval`` as it ends, so an interrupted call resumes
+    with the jobs left. Past ``deadline`` (:func:`time.monotonic`) no job is started; the ones running end.
+
+    Returns:
+        ``(evaluation, 0)``, or ``(None, jobs left)`` when the deadline came first.
+    """
+    from .metrics import combine_reports
+
+    jobs, reports, floors = [], {m: {} for m in targets}, {}
     (work / "eval").mkdir(parents=True, exist_ok=True)
+    score = {"n_points": config.n_points, "n_emd": config.n_emd, "seed": config.seed, "times": list(config.times)}
+    trajectories = {s.name: s for trajs in targets.values() for s in trajs}
+    for name, s in trajectories.items():
+        path = work / "eval" / f"floor__{name}.json"
+        if path.is_file():
+            floors[name] = json.loads(path.read_text())
+        else:
+            jobs.append((None, name, {"pred": None, "gt": str(s.traj), **score, "out": str(path)}))
+    parts: dict[tuple[str, str], list] = {}
     for method, trajs in targets.items():
         for s in trajs:
-            path = work / "eval" / f"{method}__{s.name}.json"
-            if path.is_file():
-                reports[method][s.name] = json.loads(path.read_text())
-            else:
-                jobs.append((method, s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
-                                              "n_points": config.n_points, "n_emd": config.n_emd,
-                                              "seed": config.seed, "times": list(config.times),
-                                              "out": str(path)}))
+            queried = sorted(set(_stage_times(s.traj, config.times)), reverse=True)  # two t, one stage: once
+            parts[method, s.name] = [None] * len(queried)
+            for k, t in enumerate(queried):
+                path = work / "eval" / f"{method}__{s.name}__t{k}.json"
+                if path.is_file():
+                    parts[method, s.name][k] = json.loads(path.read_text())
+                else:
+                    jobs.append(((method, k, t), s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
+                                                          **score, "t": t, "out": str(path)}))
+    t0, done = time.perf_counter(), 0
+
+    def finished(key, n, report):
+        nonlocal done
+        done += 1
+        if key is None:
+            floors[n] = report
+        else:
+            parts[key[0], n][key[1]] = report
+        what = "floors" if key is None else f"{key[0]} at t = {key[2]:.3f}"
+        log(f"  scored {what} of {n} ({done} of {len(jobs)}, {time.perf_counter() - t0:.0f} s)")
+
+    def late() -> bool:
+        return deadline is not None and time.monotonic() >= deadline
+
     if config.eval_workers > 1 and len(jobs) > 1:
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=min(config.eval_workers, len(jobs)), mp_context=ctx) as pool:
             futures = {pool.submit(_eval_job, job): (m, n) for m, n, job in jobs}
             for fut in cf.as_completed(futures):
-                m, n = futures[fut]
-                reports[m][n] = fut.result()
+                if not fut.cancelled():
+                    finished(*futures[fut], fut.result())
+                if late():
+                    for other in futures:
+                        other.cancel()  # the ones not started; the running ones end and are kept
     else:
         for m, n, job in jobs:
-            reports[m][n] = _eval_job(job)
+            if late():
+                break
+            finished(m, n, _eval_job(job))
+    if done < len(jobs):
+        log(f"  scoring stopped at the time limit: {len(jobs) - done} of {len(jobs)} jobs left")
+        return None, len(jobs) - done
+    for (m, n), rs in parts.items():
+        reports[m][n] = _with_floors(combine_reports(rs), floors[n])
     groups = {label: [s.name for s in holdout if s.kind == kind] for kind, label in _GROUPS.items()}
     methods = {g: ["cvae1", "baseline"] for g in groups}
     if distill is not None:
         groups[f"distilled: {distill.name}"] = [distill.name]
         methods[f"distilled: {distill.name}"] = [m for m in ("cvae2", "cvae1", "baseline") if targets[m]]
     groups = {g: names for g, names in groups.items() if names}
-    return {
+    evaluation = {
         "groups": _aggregate(reports, groups, methods, config.times),
         "per_trajectory": {m: {n: {"per_t": r["per_t"], "mean": r["mean"], "failed": r["failed"]}
                                for n, r in rs.items()} for m, rs in reports.items()},
         "sampling_floor": {n: r["sampling_floor"] for n, r in reports["cvae1"].items()},
         "conventions": next(iter(reports["cvae1"].values()))["conventions"],
     }
+    return evaluation, 0
 
 
 def _anatomy(models: dict, holdout: list[_Shape], out: Path, config: ExperimentConfig, notes: list[str]) -> dict:

@@ -48,6 +48,8 @@ __all__ = [
     "FRAMES",
     "UNIT_BOX",
     "chamfer_distance",
+    "combine_reports",
+    "sampling_floors",
     "largest_component",
     "compare_meshes",
     "earth_movers_distance",
@@ -64,6 +66,31 @@ def _points(x, name: str) -> np.ndarray:
     return a
 
 
+def _nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest neighbours both ways: ``(d_ab, i_ab, d_ba, i_ba)``, distance and index in ``b`` of each point of
+    ``a``'s nearest neighbour and the same from ``b`` into ``a`` (one k-d tree per set, one query each way: CD and
+    NCE share them)."""
+    from scipy.spatial import cKDTree
+
+    dab, iab = cKDTree(b).query(a)
+    dba, iba = cKDTree(a).query(b)
+    return dab, iab, dba, iba
+
+
+def _chamfer(dab: np.ndarray, dba: np.ndarray) -> float:
+    """CD from the nearest-neighbour distances of both directions (module docstring)."""
+    return float(np.mean(dab**2) + np.mean(dba**2))
+
+
+def _nce(na: np.ndarray, nb: np.ndarray, iab: np.ndarray, iba: np.ndarray, oriented: bool) -> float:
+    """NCE from the nearest-neighbour indices of both directions (module docstring)."""
+    def angle(n1, n2):
+        dot = np.einsum("ij,ij->i", n1, n2)
+        return np.arccos(np.clip(dot if oriented else np.abs(dot), -1.0, 1.0)).mean()
+
+    return float(0.5 * (angle(na, nb[iab]) + angle(nb, na[iba])))
+
+
 def chamfer_distance(a, b) -> float:
     """Symmetric Chamfer distance: sum of the two mean squared nearest-neighbour distances.
 
@@ -74,12 +101,9 @@ def chamfer_distance(a, b) -> float:
     Returns:
         ``mean_i min_j |a_i - b_j|^2 + mean_j min_i |a_i - b_j|^2`` (squared length units).
     """
-    from scipy.spatial import cKDTree
-
     a, b = _points(a, "chamfer_distance: a"), _points(b, "chamfer_distance: b")
-    dab, _ = cKDTree(b).query(a)
-    dba, _ = cKDTree(a).query(b)
-    return float(np.mean(dab**2) + np.mean(dba**2))
+    dab, _, dba, _ = _nearest(a, b)
+    return _chamfer(dab, dba)
 
 
 def earth_movers_distance(a, b) -> float:
@@ -114,20 +138,12 @@ def normal_consistency_error(a, na, b, nb, *, oriented: bool = True) -> float:
     Returns:
         ``(mean_i angle(na_i, nb_nn(i)) + mean_j angle(nb_j, na_nn(j))) / 2``.
     """
-    from scipy.spatial import cKDTree
-
     a, b = _points(a, "normal_consistency_error: a"), _points(b, "normal_consistency_error: b")
     na, nb = np.asarray(na, dtype=np.float64), np.asarray(nb, dtype=np.float64)
     if na.shape != a.shape or nb.shape != b.shape:
         raise ValueError(f"normal_consistency_error: normals {na.shape}, {nb.shape} must match points {a.shape}, {b.shape}")
-    _, iab = cKDTree(b).query(a)
-    _, iba = cKDTree(a).query(b)
-
-    def angle(n1, n2):
-        dot = np.einsum("ij,ij->i", n1, n2)
-        return np.arccos(np.clip(dot if oriented else np.abs(dot), -1.0, 1.0)).mean()
-
-    return float(0.5 * (angle(na, nb[iab]) + angle(nb, na[iba])))
+    _, iab, _, iba = _nearest(a, b)
+    return _nce(na, nb, iab, iba, oriented)
 
 
 class _Surface:
@@ -192,9 +208,11 @@ def _sample(mesh, name: str, n: int, seed: int, normalization=None) -> tuple[np.
 def _scores(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], n_emd: int, oriented: bool) -> dict:
     """CD, EMD and NCE of two samplings in the package frame, with their ``unit_box`` values."""
     (pa, na), (pb, nb) = a, b
-    cd = chamfer_distance(pa, pb)
+    pa, pb = _points(pa, "scores: a"), _points(pb, "scores: b")
+    dab, iab, dba, iba = _nearest(pa, pb)
+    cd = _chamfer(dab, dba)
     emd = earth_movers_distance(pa[:n_emd], pb[:n_emd])
-    nce = normal_consistency_error(pa, na, pb, nb, oriented=oriented)
+    nce = _nce(np.asarray(na, dtype=np.float64), np.asarray(nb, dtype=np.float64), iab, iba, oriented)
     return {"cd": cd, "emd": emd, "nce": nce, "cd_x1e4": cd * 1e4, "emd_x1e2": emd * 1e2,
             "unit_box": {"cd_x1e4": cd * 1e4 * UNIT_BOX**2, "emd_x1e2": emd * 1e2 * UNIT_BOX, "nce": nce}}
 
@@ -279,9 +297,41 @@ def read_prediction_dir(pred_dir: str | os.PathLike) -> tuple[dict[float, Any], 
     return out, meta
 
 
+def _floor(mesh, n_points: int, n_emd: int, seed: int, norm, oriented: bool, sample=None) -> dict:
+    """A ground-truth stage against itself resampled (seed ``seed + 1``) at the same counts: the sampling floor.
+    ``sample``: the stage's seed-``seed`` sampling when the caller already drew it."""
+    first = sample if sample is not None else _sample(mesh, "gt", n_points, seed, norm)
+    return _scores(first, _sample(mesh, "gt", n_points, seed + 1, norm), n_emd, oriented)
+
+
+def _nearest_stage(gt_t: np.ndarray, t: float) -> int:
+    return int(np.argmin(np.abs(gt_t - t)))
+
+
+def sampling_floors(gt_traj_dir: str | os.PathLike, times, *, n_points: int = 100000, n_emd: int = 4096,
+                    seed: int = 0, oriented: bool = True) -> dict:
+    """The sampling floors :func:`evaluate_trajectory` reports, for the ground-truth stages nearest ``times`` and
+    stage 0, computed once per trajectory (several predictors scored against one trajectory share them).
+
+    Returns:
+        ``{"stages": {stage index (str): scores}, "stage0": scores}``, scores as :func:`compare_meshes` plus
+        ``unit_box``.
+    """
+    _check_counts(n_points, n_emd)
+    traj = read_trajectory(gt_traj_dir)
+    center, scale = normalization(traj.load_stage(0))
+    gt_t = np.array([s.t for s in traj.stages])
+    positions = sorted({0, *(_nearest_stage(gt_t, float(t)) for t in times)})
+    floors = {pos: _floor(load_mesh(traj.stages[pos].path), n_points, n_emd, seed, (center, scale), oriented)
+              for pos in positions}
+    keep = _SCORE_KEYS + ("unit_box",)
+    return {"stages": {str(traj.stages[pos].index): {k: f[k] for k in keep} for pos, f in floors.items()},
+            "stage0": {k: floors[0][k] for k in keep}}
+
+
 def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str | os.PathLike, *,
                         pred_frame: str = "world", n_points: int = 100000, n_emd: int = 4096, seed: int = 0,
-                        oriented: bool = True, max_dt: float | None = None) -> dict:
+                        oriented: bool = True, max_dt: float | None = None, floors: bool = True) -> dict:
     """Compare predicted meshes at times ``t`` with the ground-truth VNC-Flow stages (Tab. 2 metrics).
 
     Each prediction is matched to the GT stage with the nearest ``t`` (Eq. (7)); both are normalized
@@ -295,6 +345,8 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
             the normalized frame, e.g. raw decoder output).
         n_points, n_emd, seed, oriented: see :func:`compare_meshes`.
         max_dt: if set, a prediction whose nearest GT stage is farther than this in ``t`` is an error.
+        floors: compute the sampling floors (``floor`` of each entry, ``sampling_floor``); False leaves them out
+            (None), for a caller that takes them from :func:`sampling_floors` once per trajectory.
 
     Returns:
         ``{"gt", "normalization", "conventions", "per_t": [...], "mean": {...}, "failed": n,
@@ -314,9 +366,9 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
     stage0 = traj.load_stage(0)
     center, scale = normalization(stage0)
     gt_t = np.array([s.t for s in traj.stages])
-    per_t, gt_cache, floors = [], {}, {}
+    per_t, gt_cache, floor_of = [], {}, {}
     for t in sorted(pred_meshes_by_t, reverse=True):
-        pos = int(np.argmin(np.abs(gt_t - t)))
+        pos = _nearest_stage(gt_t, t)
         if max_dt is not None and abs(gt_t[pos] - t) > max_dt:
             raise ValueError(f"evaluate_trajectory: no GT stage within {max_dt} of t = {t} "
                              f"(nearest t = {gt_t[pos]:.4f}, stage {traj.stages[pos].index})")
@@ -337,19 +389,21 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
         if pos not in gt_cache:
             gt_mesh = load_mesh(traj.stages[pos].path)
             gt_cache[pos] = _sample(gt_mesh, "gt", n_points, seed, (center, scale))
-            floors[pos] = _scores(gt_cache[pos], _sample(gt_mesh, "gt", n_points, seed + 1, (center, scale)), n_emd,
-                                  oriented)
+            if floors:
+                floor_of[pos] = _floor(gt_mesh, n_points, n_emd, seed, (center, scale), oriented, gt_cache[pos])
         entry["components"] = largest[2]
-        entry["floor"] = {k: floors[pos][k] for k in _SCORE_KEYS + ("unit_box",)}
+        if floors:
+            entry["floor"] = {k: floor_of[pos][k] for k in _SCORE_KEYS + ("unit_box",)}
         entry.update(_scores(pred, gt_cache[pos], n_emd, oriented))
         entry["largest"] = (_scores(_sample(largest[:2], name, n_points, seed, norm), gt_cache[pos], n_emd, oriented)
                             if largest[2] > 1 else {k: entry[k] for k in _SCORE_KEYS + ("unit_box",)})
         per_t.append(entry)
-    floor = _scores(_sample(stage0, "gt", n_points, seed, (center, scale)),
-                    _sample(stage0, "gt", n_points, seed + 1, (center, scale)), n_emd, oriented)
-    ok = [e for e in per_t if "error" not in e]
-    mean = _mean_scores(ok)
-    mean["largest"] = _mean_scores([e["largest"] for e in ok])
+    if not floors:
+        floor = None
+    elif 0 in floor_of:
+        floor = floor_of[0]
+    else:
+        floor = _floor(stage0, n_points, n_emd, seed, (center, scale), oriented)
     return {
         "gt": str(traj.root),
         "normalization": {"center": center.tolist(), "scale": scale},
@@ -362,10 +416,28 @@ def evaluate_trajectory(pred_meshes_by_t: Mapping[float, Any], gt_traj_dir: str 
             "n_points": n_points, "n_emd": n_emd, "seed": seed, "pred_frame": pred_frame,
         },
         "per_t": per_t,
-        "mean": mean,
-        "failed": len(per_t) - len(ok),
-        "sampling_floor": {k: floor[k] for k in _SCORE_KEYS + ("unit_box",)},
+        **_summary(per_t),
+        "sampling_floor": None if floor is None else {k: floor[k] for k in _SCORE_KEYS + ("unit_box",)},
     }
+
+
+def _summary(per_t: list[dict]) -> dict:
+    """``mean`` (whole prediction, and ``largest``) over the scored entries and the ``failed`` count."""
+    ok = [e for e in per_t if "error" not in e]
+    mean = _mean_scores(ok)
+    mean["largest"] = _mean_scores([e["largest"] for e in ok])
+    return {"mean": mean, "failed": len(per_t) - len(ok)}
+
+
+def combine_reports(reports: list[dict]) -> dict:
+    """One :func:`evaluate_trajectory` report from reports of one trajectory, each scoring its own times (jobs
+    split by ``t``): ``per_t`` joined (``t`` descending), ``mean`` and ``failed`` over all of them, the rest from
+    the first report (``sampling_floor``: the first one that has it)."""
+    if not reports or len({r["gt"] for r in reports}) != 1:
+        raise ValueError("combine_reports: need reports of one trajectory")
+    per_t = sorted((e for r in reports for e in r["per_t"]), key=lambda e: -e["t"])
+    floor = next((r["sampling_floor"] for r in reports if r.get("sampling_floor") is not None), None)
+    return {**reports[0], "per_t": per_t, **_summary(per_t), "sampling_floor": floor}
 
 
 _SCORE_KEYS = ("cd_x1e4", "emd_x1e2", "nce")

@@ -125,6 +125,27 @@ def test_rerun_skips_finished_stages(experiment):
                        progress=False, log=lambda msg: None)
 
 
+def test_scoring_stops_at_the_time_limit_and_resumes_to_the_same_scores(experiment, tmp_path):
+    """With the call's time limit already spent, step 4 starts no scoring job, says what is left and writes no
+    report; the next call scores every job and gets the first run's scores exactly (one job per method,
+    trajectory and t, the floors once per trajectory)."""
+    config, root, meshes, first = experiment
+    work = tmp_path / "work"
+    shutil.copytree(root / "work", work)
+    shutil.rmtree(work / "eval")
+    cut = run_experiment(dataclasses.replace(config, max_minutes=1e-6), out_dir=tmp_path / "out", work_dir=work,
+                         meshes_dir=meshes, device="cpu", progress=False, log=lambda msg: None)
+    assert len(cut["unfinished"]) == 1 and cut["unfinished"][0].startswith("evaluate (")
+    assert not list((work / "eval").glob("*.json")) and not (tmp_path / "out" / "results.json").exists()
+    run_experiment(config, out_dir=tmp_path / "out", work_dir=work, meshes_dir=meshes, device="cpu", progress=False,
+                   log=lambda msg: None)
+    scores = [json.loads((out / "results.json").read_text())["evaluation"] for out in (root / "out", tmp_path / "out")]
+    assert scores[0] == scores[1]
+    times = len(set(config.times))
+    assert len(list((work / "eval").glob("floor__*.json"))) == 2  # the held-out blob and the distilled Spot
+    assert len(list((work / "eval").glob("cvae1__*__t*.json"))) <= 2 * times
+
+
 def test_split_training_step_resumes_and_equals_one_call(experiment, tmp_path, capsys):
     """Step 2 under a time limit (`--max-minutes`) stops with a checkpoint, exits 3 and says to run it again; the
     same command then finishes it with the weights of step 2 run in one call, and a third call trains nothing

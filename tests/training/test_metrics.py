@@ -12,8 +12,9 @@ from PIL import Image
 from vnc_warp.commands import evaluate as evaluate_cmd
 from vnc_warp.shapes import icosphere, random_shape
 from vnc_warp.training.latent import analyze_latents, pca, pearson
-from vnc_warp.training.metrics import (chamfer_distance, compare_meshes, earth_movers_distance, evaluate_trajectory,
-                                       normal_consistency_error, read_prediction_dir)
+from vnc_warp.training.metrics import (chamfer_distance, combine_reports, compare_meshes, earth_movers_distance,
+                                       evaluate_trajectory, normal_consistency_error, read_prediction_dir,
+                                       sampling_floors)
 
 
 def _sphere_points(n, r, rng):
@@ -100,6 +101,35 @@ def _write_traj(root, meshes, ts):
     (root / "manifest.json").write_text(json.dumps({"format": "vnc-warp-trajectory/1", "source": "x",
                                                     "stages": stages}))
     return root
+
+
+def test_scoring_split_by_t_with_shared_floors_equals_one_call(tmp_path):
+    """The experiment scores each t of a prediction folder in its own job without floors, the trajectory's floors
+    once (sampling_floors), and joins them (combine_reports): every number equals one evaluate_trajectory call on
+    all the predictions (oracle: that call), the floors included, and stage 0's floor is the one reported for
+    the trajectory; the fragmented prediction's ``largest`` part is scored the same way."""
+    s0 = random_shape(5, subdivisions=3)
+    s1 = s0.with_vertices(0.6 * s0.vertices)
+    s2 = s0.with_vertices(0.3 * s0.vertices)
+    gt = _write_traj(tmp_path / "gt", [s0, s1, s2], [1.0, 0.5, 0.02])
+    far = icosphere(2)
+    two = (np.concatenate([s1.vertices * 1.02, far.vertices * 0.1 + 2.0]),
+           np.concatenate([s1.faces, far.faces + s1.num_vertices]))
+    preds = {1.0: s0.with_vertices(s0.vertices * 1.01), 0.5: two, 0.02: None}
+    kw = dict(n_points=1500, n_emd=200, seed=3)
+    whole = evaluate_trajectory(preds, gt, **kw)
+    parts = [evaluate_trajectory({t: p}, gt, floors=False, **kw) for t, p in preds.items()]
+    assert all(p["sampling_floor"] is None and all("floor" not in e for e in p["per_t"]) for p in parts)
+    joined = combine_reports(parts)
+    floors = sampling_floors(gt, list(preds), **kw)
+    for e in joined["per_t"]:
+        if "error" not in e:
+            e["floor"] = floors["stages"][str(e["stage"])]
+    joined["sampling_floor"] = floors["stage0"]
+    assert json.dumps(joined, sort_keys=True) == json.dumps(whole, sort_keys=True)
+    assert whole["failed"] == 1 and whole["per_t"][1]["components"] == 2
+    with pytest.raises(ValueError, match="one trajectory"):
+        combine_reports([])
 
 
 def test_evaluate_trajectory_and_command(tmp_path, capsys):

@@ -33,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override the seconds of C-VAE-II (0: none, the configured steps)")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="wall-clock minutes of this call (0: none; default: the preset's, 8.5 for gpu): training "
-                             "stops with a checkpoint and generation between predictions, the command exits with "
-                             "status 3 and the same command resumes; flows, dataset and scoring are not cut")
+                             "stops with a checkpoint, generation and scoring between predictions and jobs, the "
+                             "command exits with status 3 and the same command resumes; flows and the dataset are not "
+                             "cut")
     parser.add_argument("--flow-workers", type=int, default=None, help="override the preset's flow processes")
     parser.add_argument("--eval-workers", type=int, default=None, help="override the preset's scoring processes")
     parser.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
