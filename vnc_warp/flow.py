@@ -463,6 +463,18 @@ class _Surface:
                   device=self.x.device)
         return out
 
+    def relative_thickness(self, area: float, percentile: float = 5.0, samples: int = 4096,
+                           span: float | None = None) -> float:
+        """:func:`relative_thickness` of this state of area ``area``."""
+        from .sdf import inward_distances
+
+        hits = inward_distances(self.mesh, self.x, self.tri, samples, span=self.span() if span is None else span)
+        return float(np.percentile(hits, percentile) / np.sqrt(area / (4.0 * np.pi)))
+
+    def thinnest_part(self, area: float, edges: np.ndarray, span: float | None = None) -> float:
+        """:func:`thinnest_part` of this state of area ``area`` and edges ``edges``."""
+        return _ring_median_min(self.vertex_thickness(span).numpy(), edges) / float(np.sqrt(area / (4.0 * np.pi)))
+
 
 def relative_thickness(mesh: Mesh, *, percentile: float = 5.0, samples: int = 4096, device=None,
                        positions: wp.array | None = None) -> float:
@@ -483,12 +495,8 @@ def relative_thickness(mesh: Mesh, *, percentile: float = 5.0, samples: int = 40
     Returns:
         The dimensionless relative thickness.
     """
-    from .sdf import inward_distances
-
     surface = _Surface.of(mesh, positions.device if positions is not None else get_device(device), positions)
-    area, _ = surface.measures()
-    hits = inward_distances(surface.mesh, surface.x, surface.tri, samples, span=surface.span())
-    return float(np.percentile(hits, percentile) / np.sqrt(area / (4.0 * np.pi)))
+    return surface.relative_thickness(surface.measures()[0], percentile, samples)
 
 
 def _ring_median_min(thickness: np.ndarray, edges: np.ndarray) -> float:
@@ -531,9 +539,7 @@ def thinnest_part(mesh: Mesh, *, device=None, positions: wp.array | None = None)
         The dimensionless thickness of the thinnest part (NaN if no inward ray hit).
     """
     surface = _Surface.of(mesh, positions.device if positions is not None else get_device(device), positions)
-    area, _ = surface.measures()
-    radius = float(np.sqrt(area / (4.0 * np.pi)))
-    return _ring_median_min(surface.vertex_thickness().numpy(), mesh.topology.edges) / radius
+    return surface.thinnest_part(surface.measures()[0], mesh.topology.edges)
 
 
 def _mesh_digest(mesh: Mesh) -> str:
@@ -1217,14 +1223,10 @@ def _facts(mesh: Mesh, device, positions: wp.array | None = None) -> dict:
     counts, Euler."""
     surface = _Surface.of(mesh, device, positions)
     area, volume = surface.measures()
-    from .sdf import inward_distances
-
     span = surface.span()  # one read of the bounds for both kinds of rays
-    hits = inward_distances(surface.mesh, surface.x, surface.tri, 4096, span=span)
-    radius = np.sqrt(area / (4.0 * np.pi))
     return {"sphericity": float(36.0 * np.pi * volume**2 / area**3),
-            "thickness": float(np.percentile(hits, 5.0) / radius),
-            "thinnest": _ring_median_min(surface.vertex_thickness(span).numpy(), mesh.topology.edges) / float(radius),
+            "thickness": surface.relative_thickness(area, span=span),
+            "thinnest": surface.thinnest_part(area, mesh.topology.edges, span),
             "vertices": mesh.num_vertices, "faces": mesh.num_faces,
             "euler": int(mesh.num_vertices - mesh.topology.edges.shape[0] + mesh.num_faces)}
 
