@@ -822,11 +822,12 @@ def _eval_job(job: dict) -> dict:
     without the sampling floors, or compute the trajectory's floors once (``job["pred"]`` None); module-level for
     the process pool.
 
-    Each scored entry gets ``t_nominal``: the time of ``job["times"]`` it was queried for (:func:`_stage_times`).
+    Each scored entry gets ``t_nominal``: the time of ``job["times"]`` it was queried for (``job["queried"]``, the
+    trajectory's :func:`_stage_times`, read once by the caller).
     """
     from .metrics import evaluate_trajectory, read_prediction_dir, sampling_floors
 
-    queried = _stage_times(Path(job["gt"]), tuple(job["times"]))
+    queried = job["queried"]
     if job["pred"] is None:
         report = sampling_floors(job["gt"], queried, n_points=job["n_points"], n_emd=job["n_emd"], seed=job["seed"])
     else:
@@ -1227,18 +1228,21 @@ def _evaluate(targets: dict[str, list[_Shape]], holdout: list[_Shape], distill: 
 
     jobs, reports, floors = [], {m: {} for m in targets}, {}
     (work / "eval").mkdir(parents=True, exist_ok=True)
-    score = {"n_points": config.n_points, "n_emd": config.n_emd, "seed": config.seed, "times": list(config.times)}
     trajectories = {s.name: s for trajs in targets.values() for s in trajs}
+    # the measured t each nominal t is asked at, per trajectory (reading one verifies its stage files' checksums)
+    score = {name: {"n_points": config.n_points, "n_emd": config.n_emd, "seed": config.seed,
+                    "times": list(config.times), "queried": _stage_times(s.traj, config.times)}
+             for name, s in trajectories.items()}
     for name, s in trajectories.items():
         path = work / "eval" / f"floor__{name}.json"
         if path.is_file():
             floors[name] = json.loads(path.read_text())
         else:
-            jobs.append((None, name, {"pred": None, "gt": str(s.traj), **score, "out": str(path)}))
+            jobs.append((None, name, {"pred": None, "gt": str(s.traj), **score[name], "out": str(path)}))
     parts: dict[tuple[str, str], list] = {}
     for method, trajs in targets.items():
         for s in trajs:
-            queried = sorted(set(_stage_times(s.traj, config.times)), reverse=True)  # two t, one stage: once
+            queried = sorted(set(score[s.name]["queried"]), reverse=True)  # two t, one stage: once
             parts[method, s.name] = [None] * len(queried)
             for k, t in enumerate(queried):
                 path = work / "eval" / f"{method}__{s.name}__t{k}.json"
@@ -1246,7 +1250,7 @@ def _evaluate(targets: dict[str, list[_Shape]], holdout: list[_Shape], distill: 
                     parts[method, s.name][k] = json.loads(path.read_text())
                 else:
                     jobs.append(((method, k, t), s.name, {"pred": str(preds / method / s.name), "gt": str(s.traj),
-                                                          **score, "t": t, "out": str(path)}))
+                                                          **score[s.name], "t": t, "out": str(path)}))
     t0, done = time.perf_counter(), 0
 
     def finished(key, n, report):
