@@ -64,7 +64,8 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   chords in ``exception``, and goes to the fallbacks below as a stage short of its window does (``smoothed`` or
   ``blended`` where one lands it). Exceptions, recorded per stage as
   ``status`` and ``exception``: the **last stage** (target ``t = 0``, below the VNC-AUC of any meshed
-  sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``);
+  sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``), its states
+  scaled back to the volume it started with after each run of steps (``S`` at fixed scales falls as a shape shrinks);
   a stage whose **remesh changed the topology** (Euler characteristic, components: a handle closes, a part
   merges) and thereby already took ``S`` below its window records the remeshed state with no flow step
   (status ``remesh``); a stage that stops improving before its target ends ``converged`` with the ``t`` it
@@ -793,6 +794,14 @@ class _Stepper:
         self.lam = min(self.lam * self.p.step_growth, self.lam_rule)
         return True
 
+    def volume(self) -> float:
+        """The volume the current state encloses."""
+        return float(face_measures(self.x, self.surface.tri)[1])
+
+    def hold_volume(self, volume: float) -> None:
+        """Scale the current state about its vertex centroid back to the enclosed ``volume``."""
+        wp.copy(self.x, _scaled_to_volume(self.x, self.surface.tri, volume, self.device))
+
     def complexity(self) -> float:
         """``S`` of the current state (and, for Eq. (5), its thin-part correction refreshed from the same curves)."""
         if self.p.method != "vnc":
@@ -1251,6 +1260,11 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     tol = p.tolerance * S_init
     stepper = stepper_type(mesh, taus, p, device)
     S_a = stepper.S_start if stepper.S_start is not None else stepper.complexity()
+    # the last stage runs until S stops falling, and at the trajectory's fixed scales a shrinking shape lowers S
+    # (_scaled_to_volume): its states are held at the volume it started with, as the continuous Eq. (5) keeps it
+    # (its speed H - H_ref has zero area mean). Unheld, one H200 run shrank a body's last stage to a speck
+    # (docs/results/cvae24_h200_f069d85: human0_0057, its last stage's sampling floor EMD 0.13 against 2.5-3.0)
+    hold = stepper.volume() if final and p.method == "vnc" else None
     clock.lap("setup")
     history = [[0, S_a]]
     it, it_a, evaluations, stale, status = 0, 0, 1, 0, None
@@ -1288,6 +1302,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         for _ in range(min(ahead, p.max_iters - it)):
             stepper.step()
             it += 1
+        if hold is not None:
+            stepper.hold_volume(hold)
         clock.lap("steps")
         if p.method != "vnc":
             if _check_state(stepper.current()):
@@ -1474,7 +1490,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         exception = (exception or "the remesh") + f" took t to {S_a / S_init:.4f}, into or below this stage's window"
     elif status == "final":
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
-                     f"decreasing, at t = {S_a / S_init:.4f}")
+                     f"decreasing at the volume it started with, at t = {S_a / S_init:.4f}")
     elif status in ("max_iters", "converged", "missed"):
         if cut is not None:
             stop = f"too slow after {it} iterations"
@@ -1529,6 +1545,20 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     return state, stepper.x
 
 
+def _scaled_to_volume(x: wp.array, tri: wp.array, volume: float, device) -> wp.array:
+    """``x`` scaled about its vertex centroid to enclose ``volume``. ``S`` is measured at the trajectory's fixed
+    scales, where the same shape scores lower the smaller it is (a near-sphere of human0_0057's last stage: t 0.049
+    at its size, 0.028 at half of it, 0.006 at a tenth) and higher the larger: where a step's volume is not the
+    flow's to choose, it is scaled back."""
+    now = float(face_measures(x, tri)[1])
+    if not (now > 0.0 and volume > 0.0):
+        return x
+    v = x.numpy().astype(np.float64)
+    c = v.mean(axis=0)
+    v = c + (v - c) * (volume / now) ** (1.0 / 3.0)
+    return wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
+
+
 def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: float, target: float, tol: float,
                         history: list, it: int, *, start=None):
     """Backward-Euler smoothing steps from the stage's best state, for a stage where Eq. (5) stands still or climbs
@@ -1575,11 +1605,8 @@ def _smoothing_fallback(stepper: _Stepper, taus, p: FlowParams, device, S_a: flo
         smoother.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
         if volume is not None:
             # the continuous flow keeps the volume; the step's explicit mean does not quite (the capsule hammer at
-            # dt 16: +57 %), and S is measured at the trajectory's fixed scales, so a larger shape would count as a
-            # smoother one: scaled back to the volume it had
-            c = v.mean(axis=0)
-            v = c + (v - c) * (volume / face_measures(smoother.x, smoother.surface.tri)[1]) ** (1.0 / 3.0)
-            smoother.x = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
+            # dt 16: +57 %): scaled back to the volume it had
+            smoother.x = _scaled_to_volume(smoother.x, smoother.surface.tri, volume, device)
         S = smoother.complexity()
         evaluations += 1
         history.append([it + evaluations, S])
