@@ -226,7 +226,9 @@ def _run(path, variant, params, args):
     run = {"mesh": name, "variant": variant, "held_out": name not in TUNED, "faces": traj.meshes[0].num_faces,
            "seconds": seconds, "stages": stages, "final_t": float(traj.t[-1]),
            "input_sphericity": traj.records[0]["sphericity"], "final_sphericity": traj.records[-1]["sphericity"],
-           "warnings": [str(w.message) for w in caught], "parts": parts(traj)}
+           "warnings": [str(w.message) for w in caught], "parts": parts(traj),
+           "first_remesh": {k: (traj.records[0].get("remesh") or {}).get(k)
+                            for k in ("method", "spacing", "dropped_area", "lost_area", "grid_refined")}}
     if variant == "vnc_adaptive":
         run.update(summarize(traj, args.stages))
         if traj.info["params"]["remesh"]:
@@ -296,6 +298,9 @@ def stage_table(run: dict, n: int) -> str:
              "| stage | t | ideal 1-i/N | t after remesh | remeshes within | iterations | evaluations | seconds | "
              "sphericity | thickness | ratio | thinnest part | ratio | Euler | remesh | status |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    refined = (run.get("first_remesh") or {}).get("grid_refined")
+    if refined:  # the first remesh's grid was refined for parts thinner than the automatic one
+        lines[2:2] = [f"First remesh: {refined}.", ""]
     for r in run["stages"]:
         within = ", ".join(f"{m} {a}->{b}" for m, a, b in r.get("within") or [])
         lines.append(f"| {r['index']} | {r['t']:.3f} | {1 - r['index'] / n:.3f} | {_fmt(r.get('t_start'))} | {within} | "

@@ -921,6 +921,8 @@ def flow(
         if remesher is not None:
             m0, report = remesher(src)
             rec["remesh"] = report.to_dict()
+            if report.grid_refined:
+                log.info(f"VNC-Flow {name}: the first remesh {report.grid_refined}")
             if report.changes:
                 message = f"VNC-Flow {name}: the first remesh " + "; ".join(report.changes)
                 if report.lost_area or report.dropped_components or "topology changed" in message:
