@@ -84,7 +84,10 @@ def _exception(rec: dict, n: int) -> str | None:
         if rm and rm.get("euler") != rm.get("euler_in"):
             return "topology change"
     if rec.get("status") == "bridge jump":
-        return "jump along the bridge"
+        # the jump of a genus change (or a part that went) only: a jump with the topology unchanged is a miss
+        # (records from before the bridge recorded it have no "jump_topology" and keep the label)
+        if (rec.get("bridge") or {}).get("jump_topology", True):
+            return "jump along the bridge"
     if "self-intersection" in (rec.get("exception") or ""):
         return "self-intersection"
     return None

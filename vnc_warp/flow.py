@@ -55,14 +55,15 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   next evaluation of ``S`` from the decay rate observed so far and, when a run of steps overshoots the
   target, searches the chord between the last state above the window and the state below it (secant steps
   on the fraction of the chord) until ``t`` lands in the window (status ``budget``: only a stage whose ``t`` lies in
-  its window has it). Where no state on the chord lands in the window (``S`` jumps along it: on the H200,
-  brucewick.obj's stage 29 of 32 from t 0.117 to 0.068 at one point of the chord, around its window 0.094 +- 0.005,
-  where a thorn formed; it recorded the nearest trial, t 0.117, as ``budget``), the stage goes back to its best state
-  above the window and halves the step, as after a rise (see **Descent**; the record's ``chord_misses`` counts the
-  chords searched in vain), at most ``_CHORD_RETRIES`` times and within ``max_iters``; a stage that still misses
-  (or a baseline, which has no step to halve) ends at its best state above the window with status ``missed``, the
-  chords in ``exception``, and goes to the fallbacks below as a stage short of its window does (``smoothed`` or
-  ``blended`` where one lands it). Exceptions, recorded per stage as
+  its window has it; where the search closes on a jump of ``S``, the chord is scanned at ``_CHORD_SCAN`` evenly
+  spaced fractions for a state in the window). Where no state on the chord lands in the window (``S`` jumps along
+  it: on the H200, brucewick.obj's stage 29 of 32 from t 0.117 to 0.068 at one point of the chord, around its window
+  0.094 +- 0.005, where a thorn formed; it recorded the nearest trial, t 0.117, as ``budget``), the stage goes back
+  to its best state above the window and halves the step, as after a rise (see **Descent**; the record's
+  ``chord_misses`` counts the chords searched in vain), at most ``_CHORD_RETRIES`` times and within ``max_iters``;
+  a stage that still misses (or a baseline, which has no step to halve) ends at its best state above the window
+  with status ``missed``, the chords in ``exception``, and goes to the fallbacks below as a stage short of its window
+  does (``smoothed`` or ``blended`` where one lands it). Exceptions, recorded per stage as
   ``status`` and ``exception``: the **last stage** (target ``t = 0``, below the VNC-AUC of any meshed
   sphere) runs until ``S`` stops decreasing by 0.1 % over ``patience`` evaluations (status ``final``), its states
   scaled back to the volume it started with after each run of steps (``S`` at fixed scales falls as a shape shrinks);
@@ -124,7 +125,14 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   human_man's stage 17: 0.325 -> 0.024, its legs joined by the next stage's remesh into a handle). It is
   remeshed at once (its level set joins the parts where they overlap) and the stage goes on from there, in
   ``remeshes_within``; when the join already took ``t`` into or below the window the stage records it (status
-  ``remesh``). At most ``stall_remeshes`` remeshes within a stage, of either kind.
+  ``remesh``). At most ``stall_remeshes`` remeshes within a stage, of either kind. A run of steps that climbed (see
+  **Descent**) is taken back at half the step before it is checked for parts that met, so a climb into a contact is
+  not joined. A join that would take ``t`` below the window with the topology unchanged (Euler characteristic
+  kept, no piece of more than ``_PART_AREA`` of the level set's area dropped) removes no handle or part but ``S`` the
+  level set cannot hold (a fin thinner than the grid folded into the shape), which no bridge can spread over the
+  stages it skips: the stage goes to the smoothing fallback from its best state before the contact instead, and
+  takes the join (status ``remesh``) only where that does not land it or its parts still meet (``deferred_join`` in
+  the record).
 
 The scale range is fixed from ``M0`` for the whole trajectory so every ``S`` is measured the same way.
 """
@@ -173,6 +181,9 @@ _CLIMB = 1.0
 # a thorn formed) is backtracked at half the step, at most this many times per stage; then the stage ends above its
 # window (status "missed") and goes to the fallbacks. Before, it recorded the chord's nearest trial as "budget".
 _CHORD_RETRIES = 3
+# ... after its secant search, a chord that holds no state in its window is scanned at this many evenly spaced
+# fractions before it counts as a miss (see _search_chord)
+_CHORD_SCAN = 16
 # A stage where Eq. (5) stops lowering S short of its window (max_iters or converged: a dumbbell whose neck fattened
 # into a waist, at t 0.75, 3000 faces: every run of steps from there raised S, whatever the step, the scales (phi 1/8
 # to 1, tau_min, tau_max) or the thin-part rule; hammer, mushroom and nefertiti on the H200) went on
@@ -212,6 +223,11 @@ _BRIDGE_REFINE = 2.0
 # of the path
 _BRIDGE_TRIALS = 8
 _BRIDGE_GAP = 0.01
+# A level-set remesh that drops pieces of less than this share of its level set's area dropped no part of the shape:
+# they are fragments of a fin or sheet thinner than the grid (fandisk's stage 23 at 12,946 faces, CPU: 2 pieces,
+# 0.008 %), as the level set's tears are (docs/flow_balance.md, "Sheets thinner than the grid"); FAUST 025's forearm,
+# a part that went, was 4.8 %
+_PART_AREA = 0.005
 
 # The thin-part rule's neck term (THIN_PARTS, "Necks"): where a vertex's curvature at its own scale is above its
 # curvature at tau_max, and at most 1 / _NECK_BOUND times it, it counts as part-scale (up to that of a tube of the
@@ -1016,6 +1032,10 @@ def flow(
                                                         f"the remesh of stage {i - 1}'s state (from stage {i - 2}'s)"),
                                              q, rec, i, taus, S_init, p, device)
                     if bridged:
+                        if "deferred_join" in rec:
+                            # the join was put off and taken after all (see _run_stage): the first bridged stage
+                            # says so
+                            bridged[0][1]["deferred_join"] = rec["deferred_join"]
                         (state, rec), pending, after_bridge = bridged[0], bridged[1:], q
                     else:
                         rec["exception"] = ((rec["exception"] + "; ") if rec.get("exception") else "") + why
@@ -1115,6 +1135,8 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
     # whose window the path has passed already records the path's next state (one blend, not a search)
     S_g, mesh_g, report_g = trial(_BRIDGE_GAP)
     out, lo, S_lo, j, landed = [], 0.0, S_p, i, 0
+    # the Euler characteristics on either side of the last jump along the path, (before, after)
+    euler_p, jumped = _euler(mesh_p), None
     while j < p.stages and S_q < S_init * (1.0 - j / p.stages) - tol:
         target = S_init * (1.0 - j / p.stages)
         hi, S_hi, side, trials, history, found = 1.0, S_q, 0, 0, [[0, S_lo]], None
@@ -1163,11 +1185,22 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
             if passed:
                 trials += 1
                 history.append([trials, S_hi])
-            jump = (f"the bridge passed this stage's window at the previous stage's jump: recording its next state, "
-                    f"a = {hi:.4g} (t {S_hi / S_init:.4f})" if passed else
+            if not passed or jumped is None:
+                before_jump = cache.get(lo, (None, None, None))[2] if lo > 0.0 else None
+                went = (report["dropped_area"] >= _PART_AREA
+                        and (before_jump or {}).get("dropped_area", 0.0) < _PART_AREA)
+                jumped = (euler_p if before_jump is None else before_jump["euler"], report["euler"], went)
+            # only a jump with a genus change or a part that went is the documented exception; a jump with the
+            # topology unchanged (fandisk at 12,946 faces, CPU: stage 23, a fin thinner than the bridge's grid gone at
+            # a = 0+, Euler characteristic 2 -> 2, pieces of 0.006 % of the area dropped) is a miss
+            change = (f"Euler characteristic {jumped[0]} -> {jumped[1]}" + (
+                ": a genus change" if jumped[0] != jumped[1] else
+                f", a part of {100.0 * report['dropped_area']:.2f} % of the area dropped" if jumped[2] else
+                ": no topology change, not the documented exception"))
+            jump = (f"the bridge passed this stage's window at the previous stage's jump ({change}): recording its "
+                    f"next state, a = {hi:.4g} (t {S_hi / S_init:.4f})" if passed else
                     f"t jumps across this stage's window along the bridge between a = {lo:.4g} (t {S_lo / S_init:.4f}"
-                    f") and a = {hi:.4g} (t {S_hi / S_init:.4f}, Euler characteristic "
-                    f"{report['euler']}): recording the state past the jump")
+                    f") and a = {hi:.4g} (t {S_hi / S_init:.4f}, {change}): recording the state past the jump")
             found = (hi, S_hi, mesh, report)
         a, S, mesh, report = found
         landed += jump is None
@@ -1175,7 +1208,9 @@ def _bridge(remesher, before: tuple, q: Mesh, rec: dict, i: int, taus, S_init: f
              "evaluations": trials, "status": "bridge jump" if jump else "bridged",
              "exception": jump, "history": history, "remeshes_within": [], "remesh": None,
              "bridge": {"a": a, "trials": trials, "t_from": S_p / S_init, "t_to": S_q / S_init,
-                        "over": kind, "first_stage": i, "remesh": report},
+                        "over": kind, "first_stage": i, "remesh": report,
+                        **({"jump_euler": list(jumped[:2]), "jump_topology": jumped[0] != jumped[1] or jumped[2]}
+                           if jump else {})},
              "parts": {}, **_facts(mesh, device)}
         out.append((mesh, r))
         lo, S_lo, j = a, S, j + 1
@@ -1281,6 +1316,9 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
     part_a = wp.clone(stepper.part) if p.method == "vnc" else None
     # the stage's best state over its remeshes: (S, connectivity, positions)
     kept = None
+    # a join of parts that met whose t is below the window, the topology unchanged: (mesh, report, stepper), taken
+    # only where the smoothing fallback from the best state before it does not land the stage
+    deferred = None
     contact = remesher is not None and p.method == "vnc"
     last_valid = mesh
     rate = None
@@ -1322,7 +1360,17 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         # is above its window only: a join there is part of the stage's descent, one after it landed would take t
         # below the window (the next stage's remesh joins what little overlap the last run of steps made)
         restart = None
-        touching = (S_b > target + tol and contact and len(within) < p.stall_remeshes
+        # not a descent: the run of steps since the best state raised S above the segment's start (beyond the
+        # re-smoothing of a remeshed state), or climbed past the minimum of Eq. (5) at this step
+        climbed = descent and S_b > target + tol and (
+            S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init or (S_a < S_seg and S_b > S_a + _CLIMB * tol))
+        # A run that climbed is taken back (below) whether or not its parts met: the best state before it did not
+        # touch (it was checked at its evaluation), and a join of the climbed state is a join of a state the stage
+        # does not keep. On the H200 at 765207b fandisk's stage 23 climbed from t 0.290 to 0.339 in 16 steps into a
+        # contact, whose join took t to 0.235 (window 0.281 +- 0.005), a level-set remesh with the Euler
+        # characteristic unchanged (2 -> 2); armadillo's stage 15 likewise (0.546 -> 0.598, join 0.506, window
+        # 0.531), and scorpion's stages 3 and 7
+        touching = (S_b > target + tol and contact and len(within) < p.stall_remeshes and not climbed
                     and remesher.interpenetrates(stepper.x))
         clock.lap("checks")
         if touching:
@@ -1346,10 +1394,8 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
                     if stepper.grow():
                         rate *= p.step_growth
                 S_a, it_a = S_b, it
-            elif descent and (S_b > S_seg * (1.0 + _RISE) + _RISE_INIT * S_init
-                              or (S_a < S_seg and S_b > S_a + _CLIMB * tol)):
-                # not a descent: the run of steps since the best state raised S above the segment's start (beyond
-                # the re-smoothing of a remeshed state): go back to the best state and halve the step
+            elif climbed:
+                # not a descent: go back to the best state and halve the step
                 stepper.backtrack(x_a, part_a)
                 ahead = p.eval_every // 2
                 history.append([it, S_a])
@@ -1413,7 +1459,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         # the bridge (flow()) goes from the best state before the stage's last remesh, should it skip the window
         rec["before_remesh"] = (mesh, wp.clone(x_a), S_a, "a level-set remesh within the stage")
         try:
-            mesh, report = remesher(positions=restart)
+            joined, report = remesher(positions=restart)
         except MeshError as err:
             if not touching:
                 raise
@@ -1428,8 +1474,23 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             ahead = p.eval_every // 2
             history.append([it, S_a])
             continue
+        following = stepper_type(joined, taus, p, device, step_scale=step_scale)
+        if (touching and not final and descent and p.smoothing_fallback and following.S_start < target - tol
+                and report.euler == report.euler_in and report.dropped_area < _PART_AREA):
+            # The join would take t below the window with the topology unchanged (the Euler characteristic kept,
+            # no part dropped): what it removes is no handle or part but S the level set cannot hold, a fin or
+            # crease thinner than the grid that folded into the shape (fandisk at 12,946 faces, CPU, stage 23 of
+            # 32: t 0.293 -> 0.203 for the window 0.281 +- 0.005, 34 vertices inside another part, the fin's two
+            # fragments, 0.008 % of the area, dropped). Neither the bridge (the fin is thinner than its grid too: t
+            # jumps at a = 0+) nor a later stage can land a state in this window on the level-set path, so the
+            # stage smooths its best state before the contact into the window instead (the smoothing fallback)
+            # and takes the join only where that does not land it
+            deferred = (joined, report, following)
+            status = "converged"
+            continue
+        mesh = joined
         within.append(report.to_dict())
-        stepper = stepper_type(mesh, taus, p, device, step_scale=step_scale)
+        stepper = following
         S_a, it_a, since, rate, stale, ahead = stepper.S_start, it, it, None, 0, p.eval_every // 2
         S_seg = S_a
         x_a = wp.clone(stepper.x)
@@ -1460,6 +1521,21 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             rec["kept"] = True
             rec["smoothing"] = [[kind, dt] for kind, dt in steps]
             clock.lap("fallback")
+    if deferred is not None:
+        joined, report, following = deferred
+        join = report.to_dict()
+        rec["deferred_join"] = {"t": following.S_start / S_init, "taken": False, **{
+            k: join[k] for k in ("euler_in", "euler", "components_level_set", "dropped_components", "dropped_area",
+                                 "lost_area", "why_level_set")}}
+        if smoothed is None or abs(S_a - target) > tol or remesher.interpenetrates(stepper.x):
+            # the smoothing fallback did not land the stage (or its parts met too): the join after all, as before
+            rec["deferred_join"].update(taken=True, smoothed_t=None if smoothed is None else S_a / S_init)
+            mesh, stepper, smoothed = joined, following, None
+            rec.pop("smoothing", None)
+            within.append(report.to_dict())
+            S_a = stepper.S_start
+            history.append([it, S_a])
+            status = "remesh"
     blended = None
     if (status in ("max_iters", "converged", "missed") and not final and S_a > target + tol and p.method == "vnc"
             and p.scale_mode == "adaptive" and remesher is not None and p.blend_fallback):
@@ -1490,6 +1566,11 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         if exception is None and remesh and remesh["method"] == "level_set":
             exception = f"the level-set remesh ({remesh['why_level_set']})"
         exception = (exception or "the remesh") + f" took t to {S_a / S_init:.4f}, into or below this stage's window"
+        if deferred is not None:
+            smoothed_t = rec["deferred_join"]["smoothed_t"]
+            exception += (f" (a join of parts that met, the topology unchanged; the smoothing fallback from the best "
+                          f"state before it " + ("found no step that lowers S" if smoothed_t is None else
+                                                 f"ended at t {smoothed_t:.4f}") + ")")
     elif status == "final":
         exception = (f"last stage: target t = 0 is below a meshed sphere's VNC-AUC; ran until S stopped "
                      f"decreasing at the volume it started with, at t = {S_a / S_init:.4f}")
@@ -1502,6 +1583,13 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             stop = f"{status} after {it} iterations"
         # a stage that passed its window without landing in it did descend
         failed = "did not land in the window" if status == "missed" else "did not descend"
+        if deferred is not None:
+            join = rec["deferred_join"]
+            failed, stop = "stopped", (
+                f"its parts met after {it} iterations, and their join, a level-set remesh with the topology unchanged "
+                f"(Euler characteristic {join['euler_in']} -> {join['euler']}, {join['dropped_components']} level-set "
+                f"piece(s) of {100.0 * join['dropped_area']:.3f} % of its area dropped), would take t to "
+                f"{join['t']:.4f}, below the window")
         if misses:
             S_hi, S_lo, S_near = misses[-1]
             retried = len(misses) - (status == "missed")
@@ -1738,9 +1826,23 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
             lo, S_lo = theta, S
         else:
             hi, S_hi = theta, S
+    # S need not be monotone along the chord: where the bracket closed on a jump, a state in the window may lie
+    # elsewhere on it (fandisk at 12,946 faces, CPU, the smoothing fallback of stage 23 of 32, window 0.281 +- 0.005:
+    # t 0.2985, 0.2919, 0.2803, 0.2730, 0.2872, 0.2871, 0.2728 at fractions 0.825 ... 0.855 of the chord in steps of
+    # 0.005; the secant search ended at 0.2871). The chord is scanned at _CHORD_SCAN evenly spaced fractions
+    for k in range(1, _CHORD_SCAN + 1):
+        theta = k / (_CHORD_SCAN + 1)
+        wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(theta)], outputs=[stepper.x],
+                  device=x_b.device)
+        S = stepper.complexity()
+        history.append([it_a + theta * (it_b - it_a), S])
+        if abs(S - target) < abs(best_S - target):
+            best, best_S = theta, S
+        if abs(S - target) <= tol:
+            return S, 8 + k
     wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(best)], outputs=[stepper.x],
               device=x_b.device)
-    return best_S, 8
+    return best_S, 8 + _CHORD_SCAN
 
 
 def _version() -> str:
