@@ -1808,18 +1808,25 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
     x_b = wp.clone(stepper.x)
     lo, hi, S_lo, S_hi = 0.0, 1.0, S_a, S_b
     best, best_S = 1.0, S_b
-    for k in range(1, 9):
-        gap = S_lo - S_hi
-        # A bracket whose ends have one S (a step that moved S by nothing measurable) or whose S rises along the
-        # chord has no secant root inside it: bisect it.
-        theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 and math.isfinite(gap) else 0.5 * (lo + hi)
-        theta = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
+
+    def trial(theta: float) -> float:
+        """The state at ``theta`` along the chord, into ``stepper.x``; its ``S`` (kept as the best if nearest)."""
+        nonlocal best, best_S
         wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(theta)], outputs=[stepper.x],
                   device=x_b.device)
         S = stepper.complexity()
         history.append([it_a + theta * (it_b - it_a), S])
         if abs(S - target) < abs(best_S - target):
             best, best_S = theta, S
+        return S
+
+    for k in range(1, 9):
+        gap = S_lo - S_hi
+        # A bracket whose ends have one S (a step that moved S by nothing measurable) or whose S rises along the
+        # chord has no secant root inside it: bisect it.
+        theta = lo + (S_lo - target) / gap * (hi - lo) if gap > 0.0 and math.isfinite(gap) else 0.5 * (lo + hi)
+        theta = min(max(theta, lo + 0.05 * (hi - lo)), hi - 0.05 * (hi - lo))
+        S = trial(theta)
         if abs(S - target) <= tol:
             return S, k
         if S > target:
@@ -1831,13 +1838,7 @@ def _search_chord(stepper: _Stepper, x_a: wp.array, S_a: float, S_b: float, targ
     # t 0.2985, 0.2919, 0.2803, 0.2730, 0.2872, 0.2871, 0.2728 at fractions 0.825 ... 0.855 of the chord in steps of
     # 0.005; the secant search ended at 0.2871). The chord is scanned at _CHORD_SCAN evenly spaced fractions
     for k in range(1, _CHORD_SCAN + 1):
-        theta = k / (_CHORD_SCAN + 1)
-        wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(theta)], outputs=[stepper.x],
-                  device=x_b.device)
-        S = stepper.complexity()
-        history.append([it_a + theta * (it_b - it_a), S])
-        if abs(S - target) < abs(best_S - target):
-            best, best_S = theta, S
+        S = trial(k / (_CHORD_SCAN + 1))
         if abs(S - target) <= tol:
             return S, 8 + k
     wp.launch(_k.lerp_positions, dim=x_b.shape[0], inputs=[x_a, x_b, float(best)], outputs=[stepper.x],
