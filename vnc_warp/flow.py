@@ -1532,7 +1532,7 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
             rec["deferred_join"].update(taken=True, smoothed_t=None if smoothed is None else S_a / S_init)
             mesh, stepper, smoothed = joined, following, None
             rec.pop("smoothing", None)
-            within.append(report.to_dict())
+            within.append(join)
             S_a = stepper.S_start
             history.append([it, S_a])
             status = "remesh"

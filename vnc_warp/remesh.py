@@ -857,15 +857,21 @@ def _grid_allows(ls: _LevelSet, euler: int) -> bool:
     return low <= euler <= high
 
 
+def _far_samples(x: wp.array, tri: wp.array, result: wp.Mesh, distance: float) -> tuple[wp.array, wp.array, np.ndarray]:
+    """A surface's 4096 area-weighted samples, their normals, and which lie outside ``result`` (a ``wp.Mesh`` with
+    winding numbers) and farther than ``distance`` from it."""
+    points, normals = surface_samples(x, tri, _THICKNESS_SAMPLES, seed=1)
+    d = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
+    wp.launch(_k.signed_distance_points, dim=points.shape[0], inputs=[result.id, points, 2.0 * float(distance), 1],
+              outputs=[d], device=x.device)
+    return points, normals, d.numpy() > distance
+
+
 def _lost_share(x: wp.array, tri: wp.array, result: wp.Mesh, distance: float) -> float:
     """Share of a surface's area (4096 area-weighted samples) outside ``result`` (a ``wp.Mesh`` with winding
     numbers) and farther than ``distance`` from it: parts that vanished. Input surface inside the result (the
     faces where overlapping components met) is not lost."""
-    points, _ = surface_samples(x, tri, _THICKNESS_SAMPLES, seed=1)
-    d = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
-    wp.launch(_k.signed_distance_points, dim=points.shape[0], inputs=[result.id, points, 2.0 * float(distance), 1],
-              outputs=[d], device=x.device)
-    return float(np.mean(d.numpy() > distance))
+    return float(np.mean(_far_samples(x, tri, result, distance)[2]))
 
 
 def _unfaithful(report: RemeshReport) -> bool:
@@ -884,11 +890,7 @@ def _missing_thickness(x: wp.array, tri: wp.array, wm: wp.Mesh, result: wp.Mesh,
     ``wp.Mesh`` with winding numbers) and farther than ``distance`` from it, and the ``_MISSING_PERCENTILE``-th
     percentile of the surface's thickness there (inward rays through ``wm``, the surface's own ``wp.Mesh``; 0 when
     fewer than ``_MIN_MISSING`` samples are missing or no ray hit). ``span``: the bounding-box diagonal."""
-    points, normals = surface_samples(x, tri, _THICKNESS_SAMPLES, seed=1)
-    d = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
-    wp.launch(_k.signed_distance_points, dim=points.shape[0], inputs=[result.id, points, 2.0 * float(distance), 1],
-              outputs=[d], device=x.device)
-    far = d.numpy() > distance
+    points, normals, far = _far_samples(x, tri, result, distance)
     if np.count_nonzero(far) < _MIN_MISSING:
         return float(np.mean(far)), 0.0
     t = wp.empty(points.shape[0], dtype=wp.float32, device=x.device)
