@@ -131,8 +131,8 @@ A detailed mesh goes in; a :class:`Trajectory` of ``stages + 1`` meshes and thei
   kept, no piece of more than ``_PART_AREA`` of the level set's area dropped) removes no handle or part but ``S`` the
   level set cannot hold (a fin thinner than the grid folded into the shape), which no bridge can spread over the
   stages it skips: the stage goes to the smoothing fallback from its best state before the contact instead, and
-  takes the join (status ``remesh``) only where that does not land it or its parts still meet (``deferred_join`` in
-  the record).
+  takes the join (status ``remesh``) only where the smoothed state is no nearer the window than the join or its
+  parts still meet (``deferred_join`` in the record); a smoothed state above the window goes on to the blend.
 
 The scale range is fixed from ``M0`` for the whole trajectory so every ``S`` is measured the same way.
 """
@@ -1527,8 +1527,23 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         rec["deferred_join"] = {"t": following.S_start / S_init, "taken": False, **{
             k: join[k] for k in ("euler_in", "euler", "components_level_set", "dropped_components", "dropped_area",
                                  "lost_area", "why_level_set")}}
-        if smoothed is None or abs(S_a - target) > tol or remesher.interpenetrates(stepper.x):
-            # the smoothing fallback did not land the stage (or its parts met too): the join after all, as before
+        joined_held = None
+        if smoothed is not None:
+            # the remesher holds the join it made, a surface the stage has not taken: the smoothed state goes into it
+            # first, or the contact check below (and the next stage's remesh) would read the smoothed state's
+            # positions on the join's connectivity (on the H200 at 1ef098c: a copy of 3,002 positions into 2,999,
+            # three humanoids and armadillo.obj failed)
+            joined_held = remesher.held()
+            remesher.adopt(stepper.current(), remesher.spacing, remesher.name)
+        # the smoothed state is kept where it is nearer the target than the join (in the window, or short of it by
+        # less: on the H200 at 1ef098c fandisk's stage 22 smoothed to t 0.3066 for the window 0.3125 +- 0.005, and
+        # the join took it to 0.2919)
+        nearer = smoothed is not None and abs(S_a - target) < abs(following.S_start - target)
+        if not nearer or remesher.interpenetrates(stepper.x):
+            # the smoothing fallback did not come nearer the window than the join (or its parts met too): the join
+            # after all, as before
+            if joined_held is not None:
+                remesher.restore(joined_held)
             rec["deferred_join"].update(taken=True, smoothed_t=None if smoothed is None else S_a / S_init)
             mesh, stepper, smoothed = joined, following, None
             rec.pop("smoothing", None)

@@ -1377,6 +1377,15 @@ class _Remesher:
             raise MeshError(f"sdf_remesh: {name}: the stage to continue from is not a closed manifold surface")
         self.spacing, self.name = float(spacing), name
 
+    def held(self) -> tuple:
+        """What the remesher holds (its last surface on the device, its grid spacing and frame), for
+        :meth:`restore`: a caller that tries a remesh and may not take it (VNC-Flow's deferred join)."""
+        return self.state, self.spacing, self.origin.copy()
+
+    def restore(self, held: tuple) -> None:
+        """Hold again what :meth:`held` returned."""
+        self.state, self.spacing, self.origin = held
+
     def interpenetrates(self, positions: wp.array) -> bool:
         """Whether the current surface at ``positions`` (its connectivity, relative to :attr:`origin`) has parts
         inside other parts (two limbs that touched and went on into each other, a sheet folded over) by the rule
