@@ -359,9 +359,11 @@ def _cpu_smoke() -> ExperimentConfig:
 
 
 # Real meshes of ../shared/data/meshes the gpu preset trains on: every closed genus-0 one except the bodies
-# (held out) and the duplicate Spot (spot_lowres is the same cow).
+# (held out), the duplicate Spot (spot_lowres is the same cow) and sword.obj. Sword's blade is thinner than the
+# 6,000-face grid: its first remesh was refused in the fifth to eighth GPU runs, and since it gets a finer grid its flow
+# is slow (stage 1 of 8 took 677 s on the CPU), while flows are not cut by max_minutes. The ninth run left it out.
 _REAL_TRAIN = ("spot_lowres.obj", "bunny.obj", "armadillo.obj", "fandisk.obj", "goathead.obj", "penguin.obj",
-               "wingnut.obj", "brucewick.obj", "springer.obj", "fish.obj", "mushroom.obj", "sword.obj", "hammer.obj",
+               "wingnut.obj", "brucewick.obj", "springer.obj", "fish.obj", "mushroom.obj", "hammer.obj",
                "koala.obj", "nefertiti.obj", "scorpion.obj")
 _BODIES = ("human_man.obj", "faust_tr_reg_025.ply")
 
