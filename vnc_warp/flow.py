@@ -1527,18 +1527,18 @@ def _run_stage(mesh: Mesh, i: int, taus, S_init: float, p: FlowParams, device, b
         rec["deferred_join"] = {"t": following.S_start / S_init, "taken": False, **{
             k: join[k] for k in ("euler_in", "euler", "components_level_set", "dropped_components", "dropped_area",
                                  "lost_area", "why_level_set")}}
+        # the smoothed state is kept where it is nearer the target than the join (in the window, or short of it by
+        # less: on the H200 at 1ef098c fandisk's stage 22 smoothed to t 0.3066 for the window 0.3125 +- 0.005, and
+        # the join took it to 0.2919)
+        nearer = smoothed is not None and abs(S_a - target) < abs(following.S_start - target)
         joined_held = None
-        if smoothed is not None:
+        if nearer:
             # the remesher holds the join it made, a surface the stage has not taken: the smoothed state goes into it
             # first, or the contact check below (and the next stage's remesh) would read the smoothed state's
             # positions on the join's connectivity (on the H200 at 1ef098c: a copy of 3,002 positions into 2,999,
             # three humanoids and armadillo.obj failed)
             joined_held = remesher.held()
             remesher.adopt(stepper.current(), remesher.spacing, remesher.name)
-        # the smoothed state is kept where it is nearer the target than the join (in the window, or short of it by
-        # less: on the H200 at 1ef098c fandisk's stage 22 smoothed to t 0.3066 for the window 0.3125 +- 0.005, and
-        # the join took it to 0.2919)
-        nearer = smoothed is not None and abs(S_a - target) < abs(following.S_start - target)
         if not nearer or remesher.interpenetrates(stepper.x):
             # the smoothing fallback did not come nearer the window than the join (or its parts met too): the join
             # after all, as before
