@@ -74,25 +74,6 @@ def closed_meshes(folder: str) -> list[str]:
     return out
 
 
-def _exception(rec: dict, n: int) -> str | None:
-    """Which documented exception a stage record is, if any."""
-    if rec["index"] == n:
-        return "last stage"
-    if rec.get("status") == "held":
-        return "no descent"
-    for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
-        if rm and rm.get("euler") != rm.get("euler_in"):
-            return "topology change"
-    if rec.get("status") == "bridge jump":
-        # the jump of a genus change (or a part that went) only: a jump with the topology unchanged is a miss
-        # (records from before the bridge recorded it have no "jump_topology" and keep the label)
-        if (rec.get("bridge") or {}).get("jump_topology", True):
-            return "jump along the bridge"
-    if "self-intersection" in (rec.get("exception") or ""):
-        return "self-intersection"
-    return None
-
-
 def _moves(rec: dict, S_init: float) -> dict:
     """Where a stage's ``t`` went: ``t_start``, ``t`` after the remesh between stages (the first entry of the
     stage's S history), the remeshes within the stage (path, Euler characteristic before and after) and the S
@@ -106,9 +87,10 @@ def _moves(rec: dict, S_init: float) -> dict:
 
 def summarize(traj, n: int) -> dict:
     """t control, thinning and same-mesh facts of a trajectory."""
+    from vnc_warp.trajectory import budget_summary
+
     recs = traj.records
-    dev = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:]]
-    ruled = [abs(r["t"] - (1.0 - r["index"] / n)) for r in recs[1:] if _exception(r, n) is None]
+    budgets = budget_summary(recs, n)
     ratios = [r["thickness_ratio"] for r in recs[1:] if r.get("thickness_ratio")]
     thinnest = [r["thinnest_ratio"] for r in recs[1:] if r.get("thinnest_ratio")]
     # a stage holds the previous stage's state when its vertices are that state's, or when it took no step of
@@ -116,8 +98,7 @@ def summarize(traj, n: int) -> dict:
     same = [i for i, (m, prev, r) in enumerate(zip(traj.meshes[1:], traj.meshes[:-1], recs[1:]), start=1)
             if (r.get("iterations") == 0 and not r.get("bridge") and not r.get("from_bridge"))
             or (m.num_vertices == prev.num_vertices and np.array_equal(m.vertices, prev.vertices))]
-    return {"max_dt": max(dev, default=0.0), "max_dt_ruled": max(ruled, default=0.0),
-            "exceptions": {r["index"]: _exception(r, n) for r in recs[1:] if _exception(r, n)},
+    return {"max_dt": budgets["max_dt"], "max_dt_ruled": budgets["max_dt_ruled"], "exceptions": budgets["exceptions"],
             "min_thickness_ratio": min(ratios, default=None), "thickness": [r["thickness"] for r in recs],
             "min_thinnest_ratio": min(thinnest, default=None), "thinnest": [r.get("thinnest") for r in recs],
             "same_mesh_stages": same, "final_t": float(traj.t[-1]),

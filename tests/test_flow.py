@@ -2,6 +2,7 @@
 
 import importlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -959,12 +960,12 @@ def test_a_bridge_that_jumps_at_once_takes_one_blend_per_stage_until_it_lands():
     assert out[0][1]["t"] < 0.75 - p.tolerance and out[1][1]["t"] < 0.5 - p.tolerance
     # the noise went, no handle: the jump is no genus change, so not the documented exception (bench.flow_report
     # counts both stages as misses); before, every jump was counted as one
-    from bench.flow_report import _exception
+    from vnc_warp.trajectory import stage_exception
 
     for _, rec in out[:2]:
         assert rec["bridge"]["jump_euler"] == [2, 2] and not rec["bridge"]["jump_topology"], rec["bridge"]
         assert "no topology change" in rec["exception"], rec["exception"]
-        assert _exception(rec, 4) is None
+        assert stage_exception(rec, 4) is None
     index, status = out[2][1]["index"], out[2][1]["status"]
     assert (index, status) == (3, "bridged") and abs(out[2][1]["t"] - 0.25) <= p.tolerance
     digests = {_mesh_digest(mp), _mesh_digest(q)}
@@ -1158,3 +1159,24 @@ def test_a_deferred_join_gives_way_to_a_smoothed_state_nearer_the_window(monkeyp
     assert abs(total_complexity(state, taus, device="cpu") / S_init - rec["t"]) < 1e-5
     assert rec["status"] != "remesh" and rec["remeshes_within"] == [], rec["status"]
     assert remesher.holds.num_vertices == state.num_vertices and np.array_equal(remesher.holds.faces, state.faces)
+
+
+def test_budget_summary_leaves_out_the_documented_exceptions_only():
+    """vnc_warp.trajectory.budget_summary on hand-made records of a 4-stage trajectory (targets 0.75, 0.5, 0.25, 0):
+    a stage 0.03 off with no exception is a miss; one 0.1 off whose remesh changed the Euler characteristic, and the
+    last stage, are exceptions; a stage 0.015 off is within the bound."""
+    from vnc_warp.trajectory import budget_summary, stage_exception
+
+    recs = [{"index": 0, "t": 1.0, "status": "input"},
+            {"index": 1, "t": 0.72, "status": "budget"},
+            {"index": 2, "t": 0.40, "status": "remesh", "remesh": {"euler_in": 2, "euler": 0}},
+            {"index": 3, "t": 0.265, "status": "budget"},
+            {"index": 4, "t": 0.02, "status": "final"}]
+    b = budget_summary(recs, 4)
+    assert b["exceptions"] == {2: "topology change", 4: "last stage"}
+    assert b["misses"] == [[1, 0.72, 0.75, "budget"]]
+    assert math.isclose(b["max_dt_ruled"], 0.03) and math.isclose(b["max_dt"], 0.1)
+    assert stage_exception({"index": 1, "t": 0.5, "status": "held"}, 4) == "no descent"
+    assert stage_exception({"index": 1, "t": 0.5, "status": "budget",
+                            "exception": "the level-set remesh (9 vertex(es) lie inside another part of the shape "
+                                         "(self-intersection)) took t to 0.5"}, 4) == "self-intersection"

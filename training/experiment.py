@@ -685,6 +685,18 @@ def _flows(shapes: list[_Shape], config: ExperimentConfig, device: str | None, w
                         drop(job)
 
 
+def _flow_budgets(shapes: list[_Shape]) -> dict:
+    """The stage budgets of every finished trajectory (issue 21; :func:`vnc_warp.trajectory.budget_summary`), read
+    from the manifests: what the flows of the run did, kept with its results."""
+    from vnc_warp.trajectory import budget_summary, read_manifest
+
+    out = {}
+    for s in shapes:
+        stages = read_manifest(s.traj / "manifest.json")["stages"]
+        out[s.name] = budget_summary(stages, len(stages) - 1)
+    return out
+
+
 def _last_step(run: Path) -> int:
     from .checkpoint import load_checkpoint
 
@@ -1016,6 +1028,7 @@ def _run(config: ExperimentConfig, out: Path, work: Path, meshes_dir: str | os.P
         _flows(shapes, config, warp_device, work, log)
     results["flows"] = {s.name: {"kind": s.kind, "role": s.role, **s.info} for s in shapes}
     ok = [s for s in shapes if s.status == "done"]
+    results["flow_budgets"] = _flow_budgets(ok)
     failed = [s.name for s in shapes if s.status == "failed"]
     if failed:
         notes.append(f"flows failed (shapes left out): {failed}")
@@ -1527,5 +1540,14 @@ def results_markdown(results: dict) -> str:
     lines += [f"Flows: {len(done)} of {len(flows)} trajectories, {exp['stages']} stages each"
               + (f" ({exp['distill_mesh']}: {exp['distill_stages']})" if exp.get("distill_stages") else "")
               + f"; environment: {results['environment']}", ""]
+    budgets = results.get("flow_budgets") or {}
+    if budgets:
+        missed = {name: b["misses"] for name, b in budgets.items() if b["misses"]}
+        lines += [f"Flow budgets (every stage within 0.02 of t = 1 - i/N, the documented exceptions out): "
+                  f"{len(budgets) - len(missed)} of {len(budgets)} trajectories; worst "
+                  f"{max(b['max_dt_ruled'] for b in budgets.values()):.3f}"
+                  + ("; misses: " + ", ".join(f"{name} stage {i} t {t:.3f} for {target:.3f} ({status})"
+                                            for name, ms in missed.items() for i, t, target, status in ms)
+                     if missed else ""), ""]
     lines += ["## Notes", ""] + [f"- {n}" for n in results["notes"]] + [""]
     return "\n".join(lines)

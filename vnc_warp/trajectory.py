@@ -42,7 +42,8 @@ import numpy as np
 from ._files import output_dir, sha256_file, write_json
 from .mesh import Mesh, load_mesh
 
-__all__ = ["FORMAT", "LEGACY_FORMATS", "Trajectory", "TrajectoryError", "TrajectoryStage", "read_manifest",
+__all__ = ["FORMAT", "LEGACY_FORMATS", "Trajectory", "TrajectoryError", "TrajectoryStage", "budget_summary",
+           "read_manifest", "stage_exception",
            "read_trajectory", "resume"]
 
 FORMAT = "vnc-warp-trajectory/2"
@@ -261,6 +262,40 @@ def read_manifest(path: str | os.PathLike) -> dict:
     if writing is not None and (not isinstance(writing, str) or Path(writing).name != writing):
         raise TrajectoryError(f"{path}: 'writing' must be a file name in the folder, got {writing!r}")
     return man
+
+
+def stage_exception(rec: dict, stages: int) -> str | None:
+    """Which documented exception of the stage budgets (issue 21) a VNC-Flow stage record is, if any: the last stage
+    (t = 0 is below any meshed sphere's VNC-AUC), a stage that did not descend and holds the previous state, a
+    topology change by a remesh, the jump of a genus change (or of a part that went) along a bridge, a
+    self-intersection the level set joined."""
+    if rec["index"] == stages:
+        return "last stage"
+    if rec.get("status") == "held":
+        return "no descent"
+    for rm in [rec.get("remesh") or {}] + list(rec.get("remeshes_within") or []):
+        if rm and rm.get("euler") != rm.get("euler_in"):
+            return "topology change"
+    if rec.get("status") == "bridge jump":
+        # the jump of a genus change (or a part that went) only: a jump with the topology unchanged is a miss
+        # (records from before the bridge recorded it have no "jump_topology" and keep the label)
+        if (rec.get("bridge") or {}).get("jump_topology", True):
+            return "jump along the bridge"
+    if "self-intersection" in (rec.get("exception") or ""):
+        return "self-intersection"
+    return None
+
+
+def budget_summary(records: list, stages: int, bound: float = 0.02) -> dict:
+    """How a trajectory's stages met their budgets (Eq. 7: stage ``i`` at ``t = 1 - i / N``): ``max_dt`` over every
+    stage, ``max_dt_ruled`` with the documented exceptions (:func:`stage_exception`) left out, the ``exceptions``
+    by stage index, and the ``misses`` beyond ``bound`` that are no exception, as ``[index, t, target, status]``."""
+    dev = [(r, abs(r["t"] - (1.0 - r["index"] / stages))) for r in records if r["index"] > 0]
+    exceptions = {r["index"]: e for r, _ in dev if (e := stage_exception(r, stages))}
+    ruled = [(r, d) for r, d in dev if r["index"] not in exceptions]
+    return {"max_dt": max((d for _, d in dev), default=0.0), "max_dt_ruled": max((d for _, d in ruled), default=0.0),
+            "exceptions": exceptions,
+            "misses": [[r["index"], r["t"], 1.0 - r["index"] / stages, r.get("status")] for r, d in ruled if d > bound]}
 
 
 def resume(out_dir: str | os.PathLike, info: dict, *, keys=("params", "source_digest")) -> Trajectory | None:

@@ -83,6 +83,31 @@ def test_results_hold_both_rows_with_finite_metrics(experiment):
                     "fig9b_cvae1_family0_0002.png", "training.png"]
 
 
+def test_results_keep_each_flow_s_stage_budgets(experiment):
+    """Issue 21's budgets of every trajectory the run flowed, recomputed here from each manifest's own t: the worst
+    |t_i - (1 - i/N)| with the documented exceptions (the last stage) left out, and every stage beyond 0.02 that is
+    no exception listed as a miss; results.md says how many trajectories met them."""
+    from vnc_warp.trajectory import read_manifest
+
+    config, root, _, results = experiment
+    budgets = json.loads((root / "out" / "results.json").read_text())["flow_budgets"]
+    done = [name for name, f in results["flows"].items() if f.get("status") in ("done", "skipped (done)")]
+    assert sorted(budgets) == sorted(done) and len(done) == 4
+    for name, b in budgets.items():
+        stages = read_manifest(root / "work" / "traj" / name / "manifest.json")["stages"]
+        n = len(stages) - 1
+        assert n == config.stages
+        dev = {r["index"]: abs(r["t"] - (1 - r["index"] / n)) for r in stages[1:]}
+        assert b["exceptions"][str(n)] == "last stage"
+        inner = [d for i, d in dev.items() if str(i) not in b["exceptions"]]
+        assert math.isclose(b["max_dt_ruled"], max(inner, default=0.0))
+        assert math.isclose(b["max_dt"], max(dev.values()))
+        assert [m[0] for m in b["misses"]] == [i for i, d in dev.items() if str(i) not in b["exceptions"] and d > 0.02]
+    met = sum(not b["misses"] for b in budgets.values())
+    assert f"Flow budgets (every stage within 0.02" in (root / "out" / "results.md").read_text()
+    assert f"{met} of {len(budgets)} trajectories" in (root / "out" / "results.md").read_text()
+
+
 def test_models_are_queried_at_the_scored_stage_t(experiment):
     """Every model is asked for the shape at the measured t of the ground-truth stage it is scored against
     (read from the trajectory's manifest), not at the nominal t: the t = 0 column queries the last stage's
